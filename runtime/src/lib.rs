@@ -1,0 +1,3 @@
+//! dray-runtime: the message bus (transports, mailboxes) and process setup.
+
+pub mod logging;

@@ -1,0 +1,22 @@
+//! Logging for every dray process: `tracing` with `RUST_LOG` honoured,
+//! configured once.
+
+use std::sync::Once;
+use tracing_subscriber::EnvFilter;
+
+static INIT: Once = Once::new();
+
+/// Installs the global subscriber: `RUST_LOG` when set, `default_filter`
+/// otherwise; logs go to stderr so stdout stays for a command's output.
+/// Calling it again does nothing.
+pub fn init(default_filter: &str) {
+    INIT.call_once(|| {
+        let filter =
+            EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new(default_filter));
+        // Another subscriber set by a test harness is not an error.
+        let _ = tracing_subscriber::fmt()
+            .with_env_filter(filter)
+            .with_writer(std::io::stderr)
+            .try_init();
+    });
+}

@@ -1,0 +1,15 @@
+//! dray-scene: everything about a model before it is rendered.
+//!
+//! - [`import`]: streaming PLY and OBJ readers that turn model files into
+//!   [`Triangle`]s with their original ids (DESIGN.md, "Conventions").
+//! - [`generate`]: the deterministic synthetic power plant.
+//! - [`preprocess`]: the out-of-core build of the high-level BSP and voxels.
+//! - [`voxel`]: one voxel: its triangles, its low-level BVH, its codec.
+//! - [`db`]: the voxel database on disk: manifest, reading, verifying.
+//! - [`geometry`]: boxes, rays, the watertight ray-triangle test, clipping.
+
+pub mod geometry;
+pub mod mesh;
+
+pub use geometry::{Aabb, Hit, Ray};
+pub use mesh::Triangle;
