@@ -1,1 +1,246 @@
-fn main() {}
+//! The `dray` command line: it parses arguments and calls into the crates.
+
+use anyhow::{bail, Context, Result};
+use clap::{Parser, Subcommand};
+use dray_scene::db::info::DbInfo;
+use dray_scene::db::verify::verify;
+use dray_scene::db::Database;
+use dray_scene::generate::{generate_plant, PlantParams};
+use dray_scene::preprocess::{self, preprocess, PreprocessOptions};
+use dray_scene::progress::Progress;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+#[derive(Parser)]
+#[command(
+    name = "dray",
+    version,
+    about = "Interactive distributed ray tracing of massive models"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Generate a synthetic model.
+    Generate {
+        #[command(subcommand)]
+        model: GenerateModel,
+    },
+    /// Build a voxel database from model files (PLY, OBJ), out of core.
+    Preprocess {
+        /// Model files; triangle ids continue from one file to the next.
+        #[arg(required = true)]
+        inputs: Vec<PathBuf>,
+        /// The database directory to create (replaced atomically if it is one).
+        #[arg(long)]
+        out: PathBuf,
+        /// A BSP node with at most this many triangles becomes a voxel.
+        #[arg(long, default_value_t = preprocess::DEFAULT_MAX_TRIANGLES)]
+        max_triangles: u32,
+        /// A BSP node at this depth becomes a voxel whatever it holds.
+        #[arg(long, default_value_t = preprocess::DEFAULT_MAX_DEPTH)]
+        max_depth: u32,
+        /// Place AxBxC copies of the whole input on a grid, e.g. 2x1x2.
+        #[arg(long, value_parser = parse_copies)]
+        copies: Option<[u32; 3]>,
+        /// Grid step between copies, as a multiple of the input's extent.
+        #[arg(long, default_value_t = 1.1)]
+        spacing: f32,
+        /// Worker threads (default: every core).
+        #[arg(long, default_value_t = 0)]
+        threads: usize,
+        /// Peak memory budget in MiB.
+        #[arg(long, default_value_t = preprocess::DEFAULT_MEMORY_MB)]
+        memory_mb: u64,
+        /// zstd level of the voxel blobs (1-22).
+        #[arg(long, default_value_t = preprocess::DEFAULT_ZSTD_LEVEL)]
+        zstd_level: i32,
+    },
+    /// Check every voxel of a database; exits non-zero naming each bad one.
+    Verify { db: PathBuf },
+    /// Summarize a database.
+    Info {
+        db: PathBuf,
+        /// One JSON object instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Generate a default plant, preprocess it (kept for the next run) and
+    /// show what it holds.
+    Demo {
+        /// Where the demo keeps its model and database.
+        #[arg(long, default_value = "data/demo")]
+        dir: PathBuf,
+        /// Triangles of the generated plant.
+        #[arg(long, default_value_t = 1_000_000)]
+        triangles: u64,
+    },
+}
+
+#[derive(Subcommand)]
+enum GenerateModel {
+    /// A power plant like the paper's: steel frame, pipes, tanks, machinery.
+    Plant {
+        #[arg(long)]
+        triangles: u64,
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        #[arg(long)]
+        out: PathBuf,
+    },
+}
+
+fn parse_copies(s: &str) -> Result<[u32; 3], String> {
+    let parts: Vec<&str> = s.split(['x', 'X']).collect();
+    let bad = || format!("'{s}' is not AxBxC (three positive integers, e.g. 2x1x2)");
+    if parts.len() != 3 {
+        return Err(bad());
+    }
+    let mut out = [0u32; 3];
+    for (o, p) in out.iter_mut().zip(parts) {
+        *o = p.trim().parse().map_err(|_| bad())?;
+        if *o == 0 {
+            return Err(bad());
+        }
+    }
+    Ok(out)
+}
+
+fn main() -> ExitCode {
+    dray_runtime::logging::init("info");
+    match run(Cli::parse()) {
+        Ok(code) => code,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn run(cli: Cli) -> Result<ExitCode> {
+    match cli.command {
+        Command::Generate {
+            model:
+                GenerateModel::Plant {
+                    triangles,
+                    seed,
+                    out,
+                },
+        } => generate(triangles, seed, &out)?,
+        Command::Preprocess {
+            inputs,
+            out,
+            max_triangles,
+            max_depth,
+            copies,
+            spacing,
+            threads,
+            memory_mb,
+            zstd_level,
+        } => {
+            let opts = PreprocessOptions {
+                max_triangles,
+                max_depth,
+                copies: copies.unwrap_or([1, 1, 1]),
+                spacing,
+                threads,
+                memory_mb,
+                zstd_level,
+                ..PreprocessOptions::new(inputs, out)
+            };
+            build_database(&opts)?;
+        }
+        Command::Verify { db } => {
+            let db = Database::open(&db)?;
+            let report = verify(&db, &Progress::auto());
+            for p in &report.problems {
+                println!("{p}");
+            }
+            if !report.is_ok() {
+                eprintln!(
+                    "{}: {} problem(s) in {} voxels",
+                    db.dir().display(),
+                    report.problems.len(),
+                    report.voxels
+                );
+                return Ok(ExitCode::FAILURE);
+            }
+            println!(
+                "{}: ok ({} voxels, {} triangles)",
+                db.dir().display(),
+                report.voxels,
+                report.triangles
+            );
+        }
+        Command::Info { db, json } => {
+            let info = DbInfo::from_manifest(&Database::open(&db)?.manifest);
+            if json {
+                println!("{}", serde_json::to_string(&info)?);
+            } else {
+                print!("{}", info.to_text());
+            }
+        }
+        Command::Demo { dir, triangles } => demo(&dir, triangles)?,
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn generate(triangles: u64, seed: u64, out: &Path) -> Result<()> {
+    let progress = Progress::auto();
+    progress.stage("generating plant", triangles);
+    let mut last = 0;
+    let summary = generate_plant(&PlantParams { triangles, seed }, out, &mut |done| {
+        progress.advance(done - last);
+        last = done;
+    })?;
+    progress.finish();
+    println!(
+        "{}: {} triangles, {} vertices",
+        out.display(),
+        summary.triangles,
+        summary.vertices
+    );
+    Ok(())
+}
+
+fn build_database(opts: &PreprocessOptions) -> Result<()> {
+    let report = preprocess(opts, &Progress::auto())?;
+    let m = &report.manifest;
+    println!(
+        "{}: {} triangles -> {} voxels in {:.1} s ({:.2} M triangles/s), replication {:.3}",
+        opts.out.display(),
+        m.input_triangles,
+        m.voxels.len(),
+        report.seconds,
+        m.input_triangles as f64 / report.seconds / 1e6,
+        m.stored_triangles as f64 / m.input_triangles as f64
+    );
+    Ok(())
+}
+
+fn demo(dir: &Path, triangles: u64) -> Result<()> {
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    let model = dir.join(format!("plant-{triangles}.ply"));
+    let db_path = dir.join(format!("plant-{triangles}.db"));
+    if Database::open(&db_path).is_ok() {
+        println!(
+            "{}: reusing the database from an earlier run",
+            db_path.display()
+        );
+    } else {
+        if !model.exists() {
+            generate(triangles, 1, &model)?;
+        }
+        build_database(&PreprocessOptions::new(vec![model], db_path.clone()))?;
+    }
+    let db = Database::open(&db_path)?;
+    let report = verify(&db, &Progress::auto());
+    if !report.is_ok() {
+        bail!("{}: {}", db_path.display(), report.problems.join("; "));
+    }
+    print!("{}", DbInfo::from_manifest(&db.manifest).to_text());
+    Ok(())
+}

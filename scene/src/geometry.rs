@@ -348,16 +348,30 @@ mod tests {
             origin: Vec3::new(0.2, 0.2, -2.0),
             dir: Vec3::new(0.0, 0.0, 1.0),
         };
-        assert_eq!(intersect_triangle(&front, &tri(), 0.0, f32::INFINITY), Some(1.0));
-        assert_eq!(intersect_triangle(&back, &tri(), 0.0, f32::INFINITY), Some(2.0));
+        assert_eq!(
+            intersect_triangle(&front, &tri(), 0.0, f32::INFINITY),
+            Some(1.0)
+        );
+        assert_eq!(
+            intersect_triangle(&back, &tri(), 0.0, f32::INFINITY),
+            Some(2.0)
+        );
         assert_eq!(intersect_triangle(&back, &tri(), 0.0, 1.5), None);
     }
 
     #[test]
     fn shared_edge_is_hit_by_exactly_one_side() {
         // Two triangles sharing the diagonal of the unit square.
-        let a = [Vec3::ZERO, Vec3::new(1.0, 0.0, 0.0), Vec3::new(1.0, 1.0, 0.0)];
-        let b = [Vec3::ZERO, Vec3::new(1.0, 1.0, 0.0), Vec3::new(0.0, 1.0, 0.0)];
+        let a = [
+            Vec3::ZERO,
+            Vec3::new(1.0, 0.0, 0.0),
+            Vec3::new(1.0, 1.0, 0.0),
+        ];
+        let b = [
+            Vec3::ZERO,
+            Vec3::new(1.0, 1.0, 0.0),
+            Vec3::new(0.0, 1.0, 0.0),
+        ];
         for i in 0..100 {
             let s = i as f32 / 100.0;
             let ray = Ray {

@@ -13,3 +13,9 @@ pub mod mesh;
 
 pub use geometry::{Aabb, Hit, Ray};
 pub use mesh::Triangle;
+pub mod db;
+pub mod generate;
+pub mod import;
+pub mod preprocess;
+pub mod progress;
+pub mod voxel;

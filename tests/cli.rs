@@ -1,0 +1,99 @@
+//! The `dray` binary end to end: generate, preprocess, verify, info, and
+//! the errors a user sees.
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn dray(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_dray"))
+        .args(args)
+        .env("RUST_LOG", "warn")
+        .output()
+        .expect("run dray")
+}
+
+fn text(o: &Output) -> String {
+    format!(
+        "{}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    )
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+#[test]
+fn generate_preprocess_verify_info() {
+    let dir = tempfile::tempdir().unwrap();
+    let model = dir.path().join("plant.ply");
+    let db = dir.path().join("plant.db");
+    let out = dray(&[
+        "generate",
+        "plant",
+        "--triangles",
+        "20000",
+        "--out",
+        s(&model),
+    ]);
+    assert!(out.status.success(), "{}", text(&out));
+
+    let out = dray(&[
+        "preprocess",
+        s(&model),
+        "--out",
+        s(&db),
+        "--max-triangles",
+        "256",
+        "--threads",
+        "2",
+    ]);
+    assert!(out.status.success(), "{}", text(&out));
+
+    let out = dray(&["verify", s(&db)]);
+    assert!(out.status.success(), "{}", text(&out));
+    assert!(text(&out).contains("ok"), "{}", text(&out));
+
+    let out = dray(&["info", s(&db), "--json"]);
+    assert!(out.status.success(), "{}", text(&out));
+    let stdout = String::from_utf8(out.stdout).unwrap();
+    let info: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
+    assert_eq!(info["input_triangles"], 20000);
+    assert!(info["voxels"].as_u64().unwrap() > 10);
+    assert!(info["replication_factor"].as_f64().unwrap() >= 1.0);
+
+    let out = dray(&["info", s(&db)]);
+    assert!(text(&out).contains("replication factor"), "{}", text(&out));
+
+    // Corrupt the middle of the voxels file: verify names a voxel and fails.
+    let voxels = db.join("voxels.dray");
+    let mut bytes = std::fs::read(&voxels).unwrap();
+    let mid = bytes.len() / 2;
+    bytes[mid] ^= 0xFF;
+    std::fs::write(&voxels, bytes).unwrap();
+    let out = dray(&["verify", s(&db)]);
+    assert!(!out.status.success());
+    assert!(text(&out).contains("voxel "), "{}", text(&out));
+}
+
+#[test]
+fn bad_input_is_a_clear_error_not_a_panic() {
+    let dir = tempfile::tempdir().unwrap();
+    let bad = dir.path().join("broken.ply");
+    std::fs::write(&bad, b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n\0\0\0").unwrap();
+    let out = dray(&["preprocess", s(&bad), "--out", s(&dir.path().join("db"))]);
+    assert!(!out.status.success());
+    let t = text(&out);
+    assert!(t.contains("broken.ply") && t.contains("byte"), "{t}");
+    assert!(!t.contains("panicked"), "{t}");
+    assert!(!dir.path().join("db").exists());
+
+    let out = dray(&["verify", s(&dir.path().join("nothing-here"))]);
+    assert!(!out.status.success());
+    assert!(text(&out).contains("no such database"), "{}", text(&out));
+
+    let out = dray(&["preprocess", s(&bad), "--out", "x", "--copies", "2x0x1"]);
+    assert!(!out.status.success());
+    assert!(text(&out).contains("AxBxC"), "{}", text(&out));
+}
