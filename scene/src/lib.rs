@@ -10,6 +10,7 @@
 
 pub mod geometry;
 pub mod mesh;
+pub mod voxel;
 
 pub use geometry::{Aabb, Hit, Ray};
 pub use mesh::Triangle;
