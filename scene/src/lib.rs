@@ -8,15 +8,14 @@
 //! - [`db`]: the voxel database on disk: manifest, reading, verifying.
 //! - [`geometry`]: boxes, rays, the watertight ray-triangle test, clipping.
 
+pub mod db;
+pub mod generate;
 pub mod geometry;
+pub mod import;
 pub mod mesh;
+pub mod preprocess;
+pub mod progress;
 pub mod voxel;
 
 pub use geometry::{Aabb, Hit, Ray};
 pub use mesh::Triangle;
-pub mod db;
-pub mod generate;
-pub mod import;
-pub mod preprocess;
-pub mod progress;
-pub mod voxel;
