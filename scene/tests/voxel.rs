@@ -288,6 +288,12 @@ fn ratio(v: &Voxel, blob: &[u8]) -> f64 {
     v.raw_size() as f64 / blob.len() as f64
 }
 
+/// Ratio against the arrays without the BVH node bounds (which the blob
+/// does not store): the honest measure of the filters.
+fn ratio_without_bounds(v: &Voxel, blob: &[u8]) -> f64 {
+    (v.raw_size() - v.bvh.len() * 24) as f64 / blob.len() as f64
+}
+
 // ---------------------------------------------------------------- round trip
 
 fn arb_soup() -> impl Strategy<Value = (Aabb, Vec<Triangle>)> {
@@ -331,7 +337,11 @@ fn arb_soup() -> impl Strategy<Value = (Aabb, Vec<Triangle>)> {
 }
 
 proptest! {
-    #![proptest_config(ProptestConfig::with_cases(200))]
+    #![proptest_config(ProptestConfig {
+        cases: 200,
+        failure_persistence: None,
+        ..ProptestConfig::default()
+    })]
 
     #[test]
     fn soup_round_trips(input in arb_soup(), level in 1i32..10) {
@@ -345,6 +355,51 @@ proptest! {
         check_against_input(&d, &tris);
         // Encoding is deterministic.
         prop_assert_eq!(d.encode(level), blob);
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig {
+        cases: 300,
+        failure_persistence: None,
+        ..ProptestConfig::default()
+    })]
+
+    /// Random edits of the arrays, re-encoded with a valid checksum: decode
+    /// never panics, and whatever it accepts is valid and traces exactly
+    /// like brute force over its own triangles.
+    #[test]
+    fn edited_voxels_never_panic(
+        edits in proptest::collection::vec((0u8..5, any::<u32>(), any::<u32>()), 1..4),
+        seed in any::<u64>(),
+    ) {
+        let (b, tris) = cad_mesh(seed % 50, 40);
+        let mut v = Voxel::build(b, &tris);
+        let (nv, nt, nn) = (v.positions.len() as u32, v.triangles.len() as u32, v.bvh.len() as u32);
+        for (kind, x, y) in edits {
+            match kind {
+                0 => v.triangles[(x % nt) as usize][(y % 3) as usize] = y % (nv + 3),
+                1 => v.bvh[(x % nn) as usize].first = y % (nn + nt + 3),
+                2 => v.bvh[(x % nn) as usize].count = y % 6,
+                3 => v.bvh.swap((x % nn) as usize, (y % nn) as usize),
+                _ => v.triangles.swap((x % nt) as usize, (y % nt) as usize),
+            }
+        }
+        if let Ok(d) = Voxel::decode(&v.encode(1)) {
+            d.validate().expect("accepted voxel is valid");
+            let own: Vec<Triangle> = (0..d.triangles.len()).map(|i| d.triangle(i)).collect();
+            let mut r = Rng(seed);
+            for _ in 0..50 {
+                let ray = Ray {
+                    origin: Vec3::new(r.range(-2., 22.), r.range(-2., 22.), r.range(-2., 22.)),
+                    dir: r.unit(),
+                };
+                prop_assert_eq!(
+                    d.intersect(&ray, 0.0, f32::INFINITY),
+                    brute_force(&own, &ray, 0.0, f32::INFINITY)
+                );
+            }
+        }
     }
 }
 
@@ -689,12 +744,13 @@ fn compression_ratios() {
         for level in [1, 3, 9, 19] {
             let blob = v.encode(level);
             println!(
-                "CAD seed {seed}: {} tris, {} verts, raw {} B, level {level}: {} B, ratio {:.2}",
+                "CAD seed {seed}: {} tris, {} verts, raw {} B, level {level}: {} B, ratio {:.2} ({:.2} without node bounds)",
                 v.triangles.len(),
                 v.positions.len(),
                 v.raw_size(),
                 blob.len(),
-                ratio(&v, &blob)
+                ratio(&v, &blob),
+                ratio_without_bounds(&v, &blob)
             );
             if level >= 3 {
                 assert!(
@@ -709,12 +765,13 @@ fn compression_ratios() {
     for level in [1, 3, 9, 19] {
         let blob = v.encode(level);
         println!(
-            "bunny piece: {} tris, {} verts, raw {} B, level {level}: {} B, ratio {:.2}",
+            "bunny piece: {} tris, {} verts, raw {} B, level {level}: {} B, ratio {:.2} ({:.2} without node bounds)",
             v.triangles.len(),
             v.positions.len(),
             v.raw_size(),
             blob.len(),
-            ratio(&v, &blob)
+            ratio(&v, &blob),
+            ratio_without_bounds(&v, &blob)
         );
         assert!(ratio(&v, &blob) > 1.5);
     }
@@ -727,27 +784,24 @@ fn compression_ratios() {
 fn codec_throughput() {
     let mut sets = vec![("CAD", cad_mesh(11, 4000)), ("bunny", bunny_piece(4000))];
     sets.push(("CAD-20k", cad_mesh(12, 20000)));
-    for (name, (b, tris)) in sets {
-        let t = std::time::Instant::now();
-        let reps = 20;
-        let mut v = Voxel::build(b, &tris);
-        for _ in 1..reps {
-            v = Voxel::build(b, &tris);
+    // Best of N: the machine is shared, the minimum is the least disturbed.
+    fn best_of<T>(n: usize, mut f: impl FnMut() -> T) -> (f64, T) {
+        let mut best = f64::INFINITY;
+        let mut out = f();
+        for _ in 0..n {
+            let t = std::time::Instant::now();
+            out = f();
+            best = best.min(t.elapsed().as_secs_f64());
         }
-        let build_s = t.elapsed().as_secs_f64() / reps as f64;
+        (best, out)
+    }
+    for (name, (b, tris)) in sets {
+        let (build_s, v) = best_of(10, || Voxel::build(b, &tris));
         let raw = v.raw_size() as f64 / 1e6;
         for level in [1, 3, 6, 9] {
-            let t = std::time::Instant::now();
-            let mut blob = Vec::new();
-            for _ in 0..reps {
-                blob = v.encode(level);
-            }
-            let enc = t.elapsed().as_secs_f64() / reps as f64;
-            let t = std::time::Instant::now();
-            for _ in 0..reps {
-                assert!(Voxel::decode(&blob).is_ok());
-            }
-            let dec = t.elapsed().as_secs_f64() / reps as f64;
+            let (enc, blob) = best_of(30, || v.encode(level));
+            let (dec, d) = best_of(30, || Voxel::decode(&blob));
+            assert!(d.is_ok());
             println!(
                 "{name}: {} tris, build {:.2} ms; level {level}: ratio {:.2}, encode {:.0} MB/s, decode {:.0} MB/s (raw)",
                 v.triangles.len(),

@@ -30,7 +30,7 @@ const MEDIAN_FROM_DEPTH: usize = 32;
 /// is node `first`. Nodes are stored depth-first (pre-order), node 0 = root,
 /// so children always come after their parent and leaves list the triangles
 /// in order. `bounds` is never stored in a blob: it is recomputed exactly
-/// from the triangles ([`refit`]).
+/// from the triangles (min/max of their corners) when a blob is decoded.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct BvhNode {
     pub bounds: Aabb,

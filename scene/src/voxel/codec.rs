@@ -43,7 +43,9 @@
 //! Decoding checks, in order: length, magic, version, checksum, flags, that
 //! the raw size is within [`MAX_VOXEL_RAW_BYTES`] and both sizes match the
 //! counts, that the frame decompresses to exactly the payload size (never
-//! more is allocated), then [`Voxel::validate`].
+//! more is allocated), then [`Voxel::validate`]. Peak memory while decoding
+//! is the payload (at most the raw size) plus the decoded arrays (the raw
+//! size), both bounded by [`MAX_VOXEL_RAW_BYTES`] before any allocation.
 
 use super::bvh::{self, BvhNode};
 use super::{raw_size_of, Voxel, VoxelError};
@@ -57,6 +59,10 @@ pub const FORMAT_VERSION: u32 = 1;
 pub const HEADER_LEN: usize = 80;
 /// Largest decoded voxel accepted (and largest payload allocated): 256 MiB.
 pub const MAX_VOXEL_RAW_BYTES: u64 = 256 << 20;
+/// Suggested zstd level: on CAD-like voxels level 3 gives ~11:1 at about
+/// 1 GB/s (raw) encode; 9 gives ~13:1 at ~150 MB/s. Decode speed barely
+/// depends on the level (~1.5 GB/s raw).
+pub const DEFAULT_ZSTD_LEVEL: i32 = 3;
 /// Offset where the checksummed bytes start.
 const CHECKSUM_FROM: usize = 24;
 

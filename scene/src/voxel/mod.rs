@@ -14,7 +14,9 @@ pub mod codec;
 mod normal;
 
 pub use bvh::{BvhNode, BvhStats, MAX_BVH_DEPTH, MAX_LEAF_TRIANGLES};
-pub use codec::{checksum, FORMAT_VERSION, HEADER_LEN, MAGIC, MAX_VOXEL_RAW_BYTES};
+pub use codec::{
+    checksum, DEFAULT_ZSTD_LEVEL, FORMAT_VERSION, HEADER_LEN, MAGIC, MAX_VOXEL_RAW_BYTES,
+};
 pub use normal::{decode_normal, encode_normal};
 
 use crate::geometry::{closer, intersect_triangle, Aabb, Hit, Ray};
