@@ -8,6 +8,7 @@
 //! - [`db`]: the voxel database on disk: manifest, reading, verifying.
 //! - [`geometry`]: boxes, rays, the watertight ray-triangle test, clipping.
 
+pub mod generate;
 pub mod geometry;
 pub mod mesh;
 
