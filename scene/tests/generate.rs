@@ -289,6 +289,64 @@ fn suggested_views_start_outside_and_go_inside() {
     }
 }
 
+/// The plant is open: rays from outside towards its centre often travel far
+/// into it before they hit anything, yet most do hit something.
+#[test]
+fn from_outside_one_sees_deep_inside() {
+    use dray_scene::geometry::intersect_triangle;
+    use dray_scene::Ray;
+    let ply = check(150_000, 21);
+    let b = Aabb::from_points(&ply.positions);
+    let tris: Vec<[Vec3; 3]> = ply
+        .faces
+        .iter()
+        .map(|f| f.map(|i| ply.positions[i as usize]))
+        .collect();
+    let c = b.center();
+    let e = b.extent();
+    let rays = 64;
+    let (mut deep, mut hit) = (0, 0);
+    for k in 0..rays {
+        let ang = std::f32::consts::TAU * k as f32 / rays as f32;
+        let radius = e.x.max(e.z);
+        let origin = Vec3::new(
+            c.x + radius * ang.cos(),
+            b.min[1] + 1.7 + (k % 4) as f32 * 0.2 * e.y,
+            c.z + radius * ang.sin(),
+        );
+        let target = Vec3::new(
+            c.x + ((k * 7) % 5) as f32 * 0.05 * e.x - 0.1 * e.x,
+            b.min[1] + 1.0 + ((k * 3) % 4) as f32 * 0.2 * e.y,
+            c.z + ((k * 11) % 5) as f32 * 0.05 * e.z - 0.1 * e.z,
+        );
+        let dir = (target - origin).normalize();
+        let ray = Ray { origin, dir };
+        let (t_in, _) = b.ray_interval(&ray, 0.0, f32::INFINITY).unwrap();
+        let t_target = origin.distance(target);
+        let mut best = f32::INFINITY;
+        for t in &tris {
+            if let Some(d) = intersect_triangle(&ray, t, 0.0, best) {
+                best = d;
+            }
+        }
+        if best < f32::INFINITY {
+            hit += 1;
+        }
+        if best > t_in + 0.3 * (t_target - t_in) {
+            deep += 1;
+        }
+    }
+    println!("{deep} of {rays} rays travel over 30 % of the way in, {hit} hit");
+    assert!(
+        deep * 4 >= rays,
+        "too closed: {deep} of {rays} rays get deep inside"
+    );
+    assert!(
+        hit * 2 >= rays,
+        "too empty: only {hit} of {rays} rays hit anything"
+    );
+}
+
 /// Release timing: `cargo test --release -p dray-scene --test generate -- --ignored --nocapture`.
 /// `DRAY_TIMING_N` changes the count, `DRAY_TIMING_OUT` keeps the file there.
 #[test]

@@ -173,7 +173,7 @@ pub fn suggested_views(bounds: &Aabb) -> Vec<(Vec3, Vec3)> {
     vec![
         // Outside: from a corner, high up, looking at the centre.
         (
-            Vec3::new(lo.x - 0.45 * span, lo.y + 0.75 * span, lo.z - 0.6 * span),
+            Vec3::new(lo.x - 0.2 * span, lo.y + 0.5 * span, lo.z - 0.3 * span),
             c,
         ),
         // Approaching from the front at a low height.

@@ -15,6 +15,7 @@ pub(crate) const PITCH: f32 = 72.0;
 const INSET: f32 = 10.0;
 
 const CONCRETE: [u8; 3] = [165, 160, 150];
+const GROUND: [u8; 3] = [88, 90, 86];
 const GRATING: [u8; 3] = [95, 97, 100];
 const RAILING: [u8; 3] = [235, 190, 20];
 const STEEL: [[u8; 3]; 4] = [
@@ -152,6 +153,9 @@ impl Unit {
             Kind::Hall => (10.0, 2, 9.0, 0.2, 150.0),
             Kind::TankFarm => (6.0, 2, 4.0, 0.12, 200.0),
         };
+        // Small plants (a lone building) get fewer storeys, so that the
+        // frame leaves room for equipment and pipes.
+        let storeys = storeys.min(2 + (share / 25_000) as u32);
         let bays = (frac * share as f32 / (est * storeys as f32)).max(1.0);
         let (max_x, max_z) = match kind {
             Kind::Hall => (6, 4),
@@ -224,7 +228,18 @@ impl Unit {
     fn build(&mut self, ctx: &mut Ctx, rng: &mut Rng, rack: bool) -> Result<(), GenerateError> {
         self.start = ctx.sink.triangles;
         let (w, d, top) = (self.w(), self.d(), self.top());
-        // Ground slab.
+        // The cell's ground tile (roads), then the unit's slab.
+        ctx.part.begin(GROUND);
+        let (center, half) = if rack {
+            let c = Vec3::new(PITCH * 0.5 - INSET, -0.1, PITCH * 0.5 - INSET);
+            (self.o + c, PITCH * 0.5)
+        } else {
+            // A lone building stands on a yard of its own size.
+            let c = Vec3::new(w * 0.5, -0.1, d * 0.5);
+            (self.o + c, w.max(d) * 0.5 + 10.0)
+        };
+        ctx.part.plate(center, Vec3::X * half, Vec3::NEG_Z * half);
+        ctx.emit()?;
         ctx.part.begin(CONCRETE);
         ctx.part
             .aabox(self.at(-1.0, -0.3, -1.0), self.at(w + 1.0, 0.0, d + 1.0));
