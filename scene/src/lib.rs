@@ -9,6 +9,7 @@
 //! - [`geometry`]: boxes, rays, the watertight ray-triangle test, clipping.
 
 pub mod geometry;
+pub mod import;
 pub mod mesh;
 
 pub use geometry::{Aabb, Hit, Ray};
