@@ -514,3 +514,557 @@ fn sink_errors_stop_the_import() {
     assert_eq!(n, 1);
     assert!(e.to_string().contains("disk full"), "{e}");
 }
+
+// --------------------------------------------------------------- bad input
+
+/// Byte offset of the data of a PLY file (just after `end_header\n`).
+fn data_start(bytes: &[u8]) -> usize {
+    let k = bytes
+        .windows(11)
+        .position(|w| w == b"end_header\n")
+        .unwrap();
+    k + 11
+}
+
+fn m_le() -> Vec<u8> {
+    ply_m(Enc::Le, T::F32, T::U8, T::I32, false, false)
+}
+
+fn replace(b: &[u8], from: &str, to: &str) -> Vec<u8> {
+    let k = b
+        .windows(from.len())
+        .position(|w| w == from.as_bytes())
+        .unwrap();
+    let mut out = b[..k].to_vec();
+    out.extend_from_slice(to.as_bytes());
+    out.extend_from_slice(&b[k + from.len()..]);
+    out
+}
+
+const XYZ: &str = "property float x\nproperty float y\nproperty float z\n";
+
+#[test]
+fn error_truncated_binary_vertex_data() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut b = m_le();
+    let h = data_start(&b);
+    b.truncate(h + 50);
+    let p = write(dir.path(), "tv.ply", &b);
+    expect_err(&p, &format!("byte {}:", h + 50), "truncated");
+    // A vertex element with a list property (no up-front size bound).
+    let mut b = format!(
+        "ply\nformat binary_little_endian 1.0\nelement vertex 2\n{XYZ}property list uchar float extra\n\
+         element face 1\nproperty list uchar int vertex_indices\nend_header\n"
+    )
+    .into_bytes();
+    let h = b.len();
+    for x in [1f32, 2.0, 3.0] {
+        b.extend(x.to_le_bytes());
+    }
+    b.push(3);
+    for x in [4f32, 5.0, 6.0] {
+        b.extend(x.to_le_bytes());
+    }
+    b.extend(1f32.to_le_bytes()); // vertex 1: x, then the file ends
+    let p = write(dir.path(), "tv2.ply", &b);
+    expect_err(
+        &p,
+        &format!("byte {}:", h + 29),
+        "unexpected end of file in element 'vertex' record 1",
+    );
+}
+
+#[test]
+fn error_truncated_binary_face_data() {
+    let dir = tempfile::tempdir().unwrap();
+    // Fast path (list uchar int, little-endian): face 2 is a quad.
+    let mut b = m_le();
+    let h = data_start(&b);
+    b.truncate(b.len() - 2);
+    let p = write(dir.path(), "tf.ply", &b);
+    expect_err(
+        &p,
+        &format!("byte {}:", h + 120 + 13 + 13),
+        "runs past the end of the file",
+    );
+    // General path (big-endian, ushort indices): cut inside face 1.
+    let mut b = ply_m(Enc::Be, T::F64, T::U8, T::U16, false, false);
+    let h = data_start(&b);
+    b.truncate(h + 240 + 7 + 3);
+    let p = write(dir.path(), "tf2.ply", &b);
+    expect_err(
+        &p,
+        &format!("byte {}:", h + 240 + 7),
+        "list of 3 items runs past the end of the file",
+    );
+}
+
+#[test]
+fn error_header_counts_exceed_data() {
+    let dir = tempfile::tempdir().unwrap();
+    let b = m_le();
+    let more_faces = replace(&b, "element face 3", "element face 5");
+    let p = write(dir.path(), "f5.ply", &more_faces);
+    expect_err(
+        &p,
+        &format!("byte {}:", more_faces.len()),
+        "unexpected end of file in element 'face' record 3",
+    );
+    let more_vertices = replace(&b, "element vertex 10", "element vertex 1000");
+    let p = write(dir.path(), "v1000.ply", &more_vertices);
+    expect_err(
+        &p,
+        &format!("byte {}:", more_vertices.len()),
+        "declares 1000 records",
+    );
+    // ASCII: the file ends early.
+    let a = String::from_utf8(ply_m(Enc::Ascii, T::F32, T::U8, T::I32, false, false)).unwrap();
+    let a = a.replacen("element face 3", "element face 4", 1);
+    let p = write(dir.path(), "a4.ply", a.as_bytes());
+    expect_err(
+        &p,
+        "line 24:",
+        "unexpected end of file in element 'face' record 3",
+    );
+}
+
+#[test]
+fn error_count_too_large_for_memory() {
+    let dir = tempfile::tempdir().unwrap();
+    let b = m_le();
+    let huge = replace(&b, "element vertex 10", "element vertex 4000000000");
+    let p = write(dir.path(), "huge.ply", &huge);
+    expect_err(
+        &p,
+        &format!("byte {}:", huge.len()),
+        "declares 4000000000 records",
+    );
+    let huge = replace(&b, "element face 3", "element face 18446744073709551615");
+    let p = write(dir.path(), "hugef.ply", &huge);
+    expect_err(&p, "byte ", "declares 18446744073709551615 records");
+    let a = String::from_utf8(ply_m(Enc::Ascii, T::F32, T::U8, T::I32, false, false)).unwrap();
+    let a = a.replacen("element vertex 10", "element vertex 4000000000", 1);
+    let p = write(dir.path(), "hugea.ply", a.as_bytes());
+    expect_err(&p, "line 4:", "declares 4000000000 records");
+    // Over the caller's memory budget.
+    let p = write(dir.path(), "budget.ply", &m_le());
+    let e = import_with(
+        &p,
+        0,
+        &ImportOptions {
+            max_vertex_bytes: 100,
+        },
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(e.starts_with(&format!("{}: line 4: ", p.display())), "{e}");
+    assert!(e.contains("memory budget of 100 bytes"), "{e}");
+    let o = write(
+        dir.path(),
+        "budget.obj",
+        b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 1\nv 2 2 2\nf 1 2 3\n",
+    );
+    let e = import_with(
+        &o,
+        0,
+        &ImportOptions {
+            max_vertex_bytes: 100,
+        },
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(e.starts_with(&format!("{}: line 5: ", o.display())), "{e}");
+    assert!(e.contains("memory budget"), "{e}");
+}
+
+#[test]
+fn error_unknown_format_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let b = replace(&m_le(), "binary_little_endian", "binary_middle_endian");
+    let p = write(dir.path(), "fmt.ply", &b);
+    expect_err(&p, "line 2:", "unknown format 'binary_middle_endian'");
+}
+
+#[test]
+fn error_unknown_property_type() {
+    let dir = tempfile::tempdir().unwrap();
+    let b = replace(&m_le(), "property float y", "property float128 y");
+    let p = write(dir.path(), "ty.ply", &b);
+    expect_err(&p, "line 6:", "unknown property type 'float128'");
+    let b = replace(&m_le(), "list uchar int", "list uchar quad");
+    let p = write(dir.path(), "ty2.ply", &b);
+    expect_err(&p, "line 9:", "unknown property type 'quad'");
+    let b = replace(&m_le(), "list uchar int", "list float int");
+    let p = write(dir.path(), "ty3.ply", &b);
+    expect_err(
+        &p,
+        "line 9:",
+        "list count type 'float' is not an integer type",
+    );
+}
+
+#[test]
+fn error_missing_xyz() {
+    let dir = tempfile::tempdir().unwrap();
+    for axis in ["x", "y", "z"] {
+        let b = replace(
+            &m_le(),
+            &format!("property float {axis}\n"),
+            "property float w\n",
+        );
+        let p = write(dir.path(), &format!("no{axis}.ply"), &b);
+        expect_err(
+            &p,
+            "line 4:",
+            &format!("vertex element has no '{axis}' property"),
+        );
+    }
+    let b = "ply\nformat ascii 1.0\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n3 0 1 2\n";
+    let p = write(dir.path(), "nov.ply", b.as_bytes());
+    expect_err(&p, "", "no vertex element");
+}
+
+#[test]
+fn error_no_end_header() {
+    let dir = tempfile::tempdir().unwrap();
+    let b = format!("ply\nformat ascii 1.0\nelement vertex 3\n{XYZ}");
+    let p = write(dir.path(), "noend.ply", b.as_bytes());
+    expect_err(&p, "line 6:", "the file ends before end_header");
+    // Data where the header should end.
+    let b = format!("ply\nformat ascii 1.0\nelement vertex 3\n{XYZ}0 0 0\n");
+    let p = write(dir.path(), "noend2.ply", b.as_bytes());
+    expect_err(&p, "line 7:", "unknown header keyword '0'");
+}
+
+#[test]
+fn error_vertex_index_out_of_range() {
+    let dir = tempfile::tempdir().unwrap();
+    // Fast path: face 1 = [0, 3, 4]; its second index becomes 10.
+    let mut b = m_le();
+    let h = data_start(&b);
+    let at = h + 120 + 13 + 1 + 4;
+    b[at..at + 4].copy_from_slice(&10i32.to_le_bytes());
+    let p = write(dir.path(), "oor.ply", &b);
+    expect_err(
+        &p,
+        &format!("byte {at}:"),
+        "face 1: vertex index 10 out of range (the model has 10 vertices)",
+    );
+    // General path, big-endian uint.
+    let mut b = ply_m(Enc::Be, T::F64, T::U8, T::U32, false, false);
+    let h = data_start(&b);
+    let at = h + 240 + 13 + 1 + 8;
+    b[at..at + 4].copy_from_slice(&4000000000u32.to_be_bytes());
+    let p = write(dir.path(), "oor2.ply", &b);
+    expect_err(
+        &p,
+        &format!("byte {at}:"),
+        "face 1: vertex index 4000000000 out of range",
+    );
+    // ASCII.
+    let a = String::from_utf8(ply_m(Enc::Ascii, T::F32, T::U8, T::I32, false, false)).unwrap();
+    let a = a.replacen("3 0 3 4", "3 0 3 11", 1);
+    let p = write(dir.path(), "oor.ply", a.as_bytes());
+    expect_err(&p, "line 22:", "face 1: vertex index 11 out of range");
+}
+
+#[test]
+fn error_negative_index() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut b = m_le();
+    let h = data_start(&b);
+    let at = h + 120 + 1 + 8;
+    b[at..at + 4].copy_from_slice(&(-1i32).to_le_bytes());
+    let p = write(dir.path(), "neg.ply", &b);
+    expect_err(
+        &p,
+        &format!("byte {at}:"),
+        "face 0: negative vertex index -1",
+    );
+    let mut b = ply_m(Enc::Be, T::F32, T::U8, T::I16, false, false);
+    let h = data_start(&b);
+    let at = h + 120 + 7 + 1;
+    b[at..at + 2].copy_from_slice(&(-3i16).to_be_bytes());
+    let p = write(dir.path(), "neg2.ply", &b);
+    expect_err(
+        &p,
+        &format!("byte {at}:"),
+        "face 1: negative vertex index -3",
+    );
+    let a = String::from_utf8(ply_m(Enc::Ascii, T::F32, T::U8, T::I32, false, false)).unwrap();
+    let a = a.replacen("3 0 3 4", "3 0 -3 4", 1);
+    let p = write(dir.path(), "neg.ply", a.as_bytes());
+    expect_err(&p, "line 22:", "face 1: negative vertex index -3");
+}
+
+#[test]
+fn error_nan_coordinates() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut b = m_le();
+    let h = data_start(&b);
+    let at = h + 2 * 12 + 4;
+    b[at..at + 4].copy_from_slice(&f32::NAN.to_le_bytes());
+    let p = write(dir.path(), "nan.ply", &b);
+    expect_err(
+        &p,
+        &format!("byte {}:", h + 24),
+        "vertex 2 has a NaN coordinate",
+    );
+    let a = String::from_utf8(ply_m(Enc::Ascii, T::F32, T::U8, T::I32, false, false)).unwrap();
+    let a = a.replacen("0 2 0", "0 nan 0", 1);
+    let p = write(dir.path(), "nan.ply", a.as_bytes());
+    expect_err(&p, "line 13:", "vertex 2 has a NaN coordinate");
+    let p = write(
+        dir.path(),
+        "nan.obj",
+        b"v 0 0 0\nv 1 NaN 0\nv 0 1 0\nf 1 2 3\n",
+    );
+    expect_err(&p, "line 2:", "NaN");
+}
+
+#[test]
+fn error_infinite_coordinates() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut b = ply_m(Enc::Be, T::F64, T::U8, T::U32, false, false);
+    let h = data_start(&b);
+    let at = h + 3 * 24 + 16;
+    b[at..at + 8].copy_from_slice(&f64::NEG_INFINITY.to_be_bytes());
+    let p = write(dir.path(), "inf.ply", &b);
+    expect_err(
+        &p,
+        &format!("byte {}:", h + 72),
+        "vertex 3 has an infinite coordinate",
+    );
+    // Finite as a double, infinite as f32.
+    b[at..at + 8].copy_from_slice(&1e300f64.to_be_bytes());
+    let p = write(dir.path(), "inf2.ply", &b);
+    expect_err(
+        &p,
+        &format!("byte {}:", h + 72),
+        "vertex 3 has an infinite coordinate",
+    );
+    let a = String::from_utf8(ply_m(Enc::Ascii, T::F32, T::U8, T::I32, false, false)).unwrap();
+    let a = a.replacen("0 2 0", "0 inf 0", 1);
+    let p = write(dir.path(), "inf.ply", a.as_bytes());
+    expect_err(&p, "line 13:", "vertex 2 has an infinite coordinate");
+    let p = write(
+        dir.path(),
+        "inf.obj",
+        b"v 0 0 0\nv 1 0 0\nv 0 1 -inf\nf 1 2 3\n",
+    );
+    expect_err(&p, "line 3:", "infinite");
+}
+
+#[test]
+fn error_faces_with_fewer_than_3_vertices() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut b = m_le();
+    let h = data_start(&b);
+    b[h + 120 + 13] = 2;
+    let p = write(dir.path(), "f2.ply", &b);
+    expect_err(
+        &p,
+        &format!("byte {}:", h + 133),
+        "face 1 has 2 vertices; a face needs at least 3",
+    );
+    let mut b = ply_m(Enc::Le, T::F32, T::U16, T::U32, false, false);
+    let h = data_start(&b);
+    b[h + 120] = 0;
+    let p = write(dir.path(), "f0.ply", &b);
+    expect_err(&p, &format!("byte {}:", h + 120), "face 0 has 0 vertices");
+    let a = String::from_utf8(ply_m(Enc::Ascii, T::F32, T::U8, T::I32, false, false)).unwrap();
+    let a = a.replacen("3 0 3 4", "2 0 3", 1);
+    let p = write(dir.path(), "f2.ply", a.as_bytes());
+    expect_err(&p, "line 22:", "face 1 has 2 vertices");
+    let p = write(
+        dir.path(),
+        "f2.obj",
+        b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\nf 1 2\n",
+    );
+    expect_err(
+        &p,
+        "line 5:",
+        "face has 2 vertices; a face needs at least 3",
+    );
+}
+
+#[test]
+fn error_list_counts_overrun_the_file() {
+    let dir = tempfile::tempdir().unwrap();
+    // The last face's count says 255 (fast path) ...
+    let mut b = m_le();
+    let h = data_start(&b);
+    b[h + 146] = 255;
+    let p = write(dir.path(), "l255.ply", &b);
+    expect_err(
+        &p,
+        &format!("byte {}:", h + 146),
+        "list of 255 items runs past the end of the file",
+    );
+    // ... or 4e9 (uint counts, general path).
+    let mut b = ply_m(Enc::Le, T::F32, T::U32, T::I32, false, false);
+    let h = data_start(&b);
+    b[h + 120..h + 124].copy_from_slice(&4_000_000_000u32.to_le_bytes());
+    let p = write(dir.path(), "l4e9.ply", &b);
+    expect_err(
+        &p,
+        &format!("byte {}:", h + 120),
+        "list of 4000000000 items runs past the end of the file",
+    );
+    // In a skipped property of an unknown element.
+    let mut b = format!(
+        "ply\nformat binary_big_endian 1.0\nelement junk 1\nproperty list int double stuff\n\
+         element vertex 3\n{XYZ}element face 1\nproperty list uchar int vertex_indices\nend_header\n"
+    )
+    .into_bytes();
+    let h = b.len();
+    b.extend(1_000_000i32.to_be_bytes());
+    b.extend([0u8; 49]);
+    let p = write(dir.path(), "junk.ply", &b);
+    expect_err(
+        &p,
+        &format!("byte {h}:"),
+        "element 'junk' record 0: list of 1000000 items runs past the end",
+    );
+    // ASCII.
+    let a = String::from_utf8(ply_m(Enc::Ascii, T::F32, T::U8, T::I32, false, false)).unwrap();
+    let a = a.replacen("4 6 7 8 9", "200 6 7 8 9", 1);
+    let p = write(dir.path(), "l200.ply", a.as_bytes());
+    expect_err(
+        &p,
+        "line 23:",
+        "list of 200 items runs past the end of the file",
+    );
+}
+
+#[test]
+fn error_empty_file() {
+    let dir = tempfile::tempdir().unwrap();
+    for name in ["e.ply", "e.obj", "e.xyz"] {
+        let p = write(dir.path(), name, b"");
+        let e = expect_err(&p, "", "empty file");
+        assert_eq!(e, format!("{}: empty file", p.display()));
+    }
+}
+
+#[test]
+fn error_vertices_but_no_faces() {
+    let dir = tempfile::tempdir().unwrap();
+    let b =
+        format!("ply\nformat ascii 1.0\nelement vertex 3\n{XYZ}end_header\n0 0 0\n1 0 0\n0 1 0\n");
+    let p = write(dir.path(), "nf.ply", b.as_bytes());
+    expect_err(&p, "", "no faces");
+    let b = format!(
+        "ply\nformat ascii 1.0\nelement vertex 3\n{XYZ}element face 0\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n"
+    );
+    let p = write(dir.path(), "nf0.ply", b.as_bytes());
+    expect_err(&p, "", "no faces");
+    let p = write(dir.path(), "nf.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\n");
+    let e = expect_err(&p, "", "no faces");
+    assert_eq!(e, format!("{}: no faces", p.display()));
+}
+
+#[test]
+fn error_obj_index_zero() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = write(
+        dir.path(),
+        "z.obj",
+        b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\nf 0 1 2\n",
+    );
+    expect_err(&p, "line 5:", "vertex index 0 is invalid");
+    let p = write(
+        dir.path(),
+        "zn.obj",
+        b"v 0 0 0\nv 1 0 0\nv 0 1 0\nvn 0 0 1\nf 1//0 2//1 3//1\n",
+    );
+    expect_err(&p, "line 5:", "normal index 0 is invalid");
+}
+
+#[test]
+fn error_obj_index_out_of_range() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = write(dir.path(), "r.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 4\n");
+    expect_err(
+        &p,
+        "line 4:",
+        "vertex index 4 out of range (3 defined so far)",
+    );
+    let p = write(
+        dir.path(),
+        "rn.obj",
+        b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 -4\n",
+    );
+    expect_err(&p, "line 4:", "vertex index -4 out of range");
+    let p = write(
+        dir.path(),
+        "rvn.obj",
+        b"v 0 0 0\nv 1 0 0\nv 0 1 0\nvn 0 0 1\nf 1//1 2//2 3//1\n",
+    );
+    expect_err(&p, "line 5:", "normal index 2 out of range");
+    // Forward references are not allowed either.
+    let p = write(
+        dir.path(),
+        "fw.obj",
+        b"v 0 0 0\nv 1 0 0\nf 1 2 3\nv 0 1 0\n",
+    );
+    expect_err(&p, "line 3:", "vertex index 3 out of range");
+}
+
+#[test]
+fn error_obj_garbage_numbers() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = write(
+        dir.path(),
+        "g.obj",
+        b"v 0 0 0\n\nv 1.0 abc 2\nv 0 1 0\nf 1 2 3\n",
+    );
+    expect_err(&p, "line 3:", "invalid number 'abc' in 'v' statement");
+    let p = write(
+        dir.path(),
+        "g2.obj",
+        b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 x3\n",
+    );
+    expect_err(&p, "line 4:", "invalid vertex index 'x3'");
+    let p = write(dir.path(), "g3.obj", b"v 0 0\n");
+    expect_err(&p, "line 1:", "'v' statement needs 3 numbers");
+}
+
+#[test]
+fn error_binary_file_given_as_obj() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = write(
+        dir.path(),
+        "bin.obj",
+        b"v 0 0 0\nv 1 0 0\x00\x01\x02\n\x7fELF",
+    );
+    expect_err(&p, "byte 15:", "not a text OBJ file (NUL byte)");
+    let p = write(
+        dir.path(),
+        "utf.obj",
+        b"v 0 0 0\nv 1 0 0\xff\xfe\nv 0 1 0\nf 1 2 3\n",
+    );
+    expect_err(&p, "byte 15:", "not a text OBJ file (invalid UTF-8)");
+}
+
+#[test]
+fn error_directory_missing_file_unknown_extension() {
+    let dir = tempfile::tempdir().unwrap();
+    let sub = dir.path().join("models.obj");
+    std::fs::create_dir(&sub).unwrap();
+    expect_err(&sub, "", "is a directory");
+    expect_err(&dir.path().join("missing.ply"), "", "cannot open");
+    let p = write(dir.path(), "model.stl", b"solid x\nendsolid x\n");
+    expect_err(&p, "", "unknown model format");
+    let p = write(
+        dir.path(),
+        "model.ply",
+        b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
+    );
+    expect_err(&p, "byte 0:", "not a PLY file");
+    // Detection is by content: a PLY named .obj (or anything) is PLY.
+    let p = write(dir.path(), "really-ply.obj", &m_le());
+    check_model_m(&import(&p).unwrap().0, 0, false);
+    let p = write(dir.path(), "noext", &m_le());
+    assert_eq!(probe_model(&p).unwrap().format, ModelFormat::Ply);
+}

@@ -566,6 +566,8 @@ struct Ascii {
     record: u64,
     rec_line: u64,
     val_line: u64,
+    /// A record began: its line is that of its first token.
+    rec_pending: bool,
 }
 
 impl Ascii {
@@ -598,6 +600,10 @@ impl Ascii {
             }
         }
         self.val_line = self.line;
+        if self.rec_pending {
+            self.rec_pending = false;
+            self.rec_line = self.line;
+        }
         let mut len = 0;
         loop {
             let start = self.inp.pos;
@@ -653,6 +659,7 @@ impl Values for Ascii {
     fn begin(&mut self, i: u64) {
         self.record = i;
         self.rec_line = self.line;
+        self.rec_pending = true;
     }
     fn scalar(&mut self, t: Scalar) -> Result<f64, ImportError> {
         if !t.is_float() {
@@ -773,7 +780,7 @@ fn load_vertices<V: Values>(
             &path,
             e.line,
             format!(
-                "{n} vertices need {bytes} bytes of memory, more than the budget of {} bytes (ImportOptions::max_vertex_bytes)",
+                "{n} vertices need {bytes} bytes of memory, more than the memory budget of {} bytes (ImportOptions::max_vertex_bytes)",
                 opts.max_vertex_bytes
             ),
         ));
@@ -1078,6 +1085,7 @@ pub(crate) fn import(
                 record: 0,
                 rec_line: h.data_line,
                 val_line: h.data_line,
+                rec_pending: false,
             };
             run(&mut v, &h, &lay, first_id, opts, sink)
         }
