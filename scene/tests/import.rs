@@ -63,12 +63,10 @@ fn close(a: Vec3, b: Vec3) -> bool {
 fn assert_tri(t: &Triangle, id: u32, p: [Vec3; 3], n: [Vec3; 3], c: [[u8; 4]; 3]) {
     assert_eq!(t.id, id);
     assert_eq!(t.positions, p, "positions of triangle {id}");
-    for k in 0..3 {
+    for (k, (got, want)) in t.normals.iter().zip(n).enumerate() {
         assert!(
-            close(t.normals[k], n[k]),
-            "normal {k} of triangle {id}: {:?} vs {:?}",
-            t.normals[k],
-            n[k]
+            close(*got, want),
+            "normal {k} of triangle {id}: {got:?} vs {want:?}"
         );
     }
     assert_eq!(t.colors, c, "colors of triangle {id}");
@@ -1067,4 +1065,326 @@ fn error_directory_missing_file_unknown_extension() {
     check_model_m(&import(&p).unwrap().0, 0, false);
     let p = write(dir.path(), "noext", &m_le());
     assert_eq!(probe_model(&p).unwrap().format, ModelFormat::Ply);
+}
+
+// ------------------------------------------------------------------ fuzzing
+
+/// xorshift64*: a tiny deterministic PRNG.
+struct Rng(u64);
+
+impl Rng {
+    fn next(&mut self) -> u64 {
+        self.0 ^= self.0 >> 12;
+        self.0 ^= self.0 << 25;
+        self.0 ^= self.0 >> 27;
+        self.0.wrapping_mul(0x2545_F491_4F6C_DD1D)
+    }
+
+    fn below(&mut self, n: usize) -> usize {
+        if n == 0 {
+            0
+        } else {
+            (self.next() % n as u64) as usize
+        }
+    }
+}
+
+fn mutate(rng: &mut Rng, base: &[u8]) -> Vec<u8> {
+    let mut b = base.to_vec();
+    for _ in 0..1 + rng.below(3) {
+        // Half the mutations hit the header / first lines.
+        let span = if rng.below(2) == 0 {
+            b.len().min(300)
+        } else {
+            b.len()
+        };
+        let pos = rng.below(span);
+        match rng.below(7) {
+            0 if !b.is_empty() => b[pos] ^= 1 << rng.below(8),
+            1 if !b.is_empty() => b[pos] = rng.next() as u8,
+            2 => b.truncate(rng.below(b.len() + 1)),
+            3 => {
+                const TEXT: &[u8] = b"0123456789 -.\n/e";
+                for _ in 0..1 + rng.below(8) {
+                    let c = if rng.below(2) == 0 {
+                        TEXT[rng.below(TEXT.len())]
+                    } else {
+                        rng.next() as u8
+                    };
+                    b.insert(pos.min(b.len()), c);
+                }
+            }
+            4 => {
+                let end = (pos + 1 + rng.below(16)).min(b.len());
+                b.drain(pos.min(end)..end);
+            }
+            5 if b.len() >= pos + 4 => {
+                let v: [u8; 4] = match rng.below(4) {
+                    0 => [0xFF; 4],
+                    1 => [0, 0, 0, 0x80],
+                    2 => *b"9999",
+                    _ => [0x7F, 0xFF, 0xFF, 0xFF],
+                };
+                b[pos..pos + 4].copy_from_slice(&v);
+            }
+            _ => {
+                // Duplicate a chunk.
+                let end = (pos + 1 + rng.below(32)).min(b.len());
+                let chunk = b[pos.min(end)..end].to_vec();
+                let at = rng.below(b.len() + 1);
+                b.splice(at..at, chunk);
+            }
+        }
+    }
+    b
+}
+
+#[test]
+fn fuzz_mutated_files_never_panic() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut obj = String::new();
+    for (i, p) in POS.iter().enumerate() {
+        obj += &format!(
+            "v {} {} {}{}\n",
+            p[0],
+            p[1],
+            p[2],
+            if i % 2 == 0 { " 0.5 0.25 1" } else { "" }
+        );
+    }
+    obj += "vn 0 0 1\nvt 0 0\nf 1 2 3\nf -10/1 -7/1/1 -6//1\nf 7 8 9 10\n";
+    let bases: Vec<(&str, Vec<u8>)> = vec![
+        ("le.ply", ply_m(Enc::Le, T::F32, T::U8, T::I32, false, true)),
+        (
+            "le2.ply",
+            ply_m(Enc::Le, T::F32, T::U16, T::U32, true, false),
+        ),
+        ("be.ply", ply_m(Enc::Be, T::F64, T::U8, T::U16, false, true)),
+        (
+            "a.ply",
+            ply_m(Enc::Ascii, T::F32, T::U8, T::I32, false, true),
+        ),
+        (
+            "a2.ply",
+            ply_m(Enc::Ascii, T::F64, T::U16, T::U32, true, false),
+        ),
+        ("m.obj", obj.into_bytes()),
+    ];
+    let opts = ImportOptions {
+        max_vertex_bytes: 1 << 20,
+    };
+    let mut rng = Rng(0x9E37_79B9_7F4A_7C15);
+    let (mut ok, mut err) = (0, 0);
+    for (name, base) in &bases {
+        // The unmutated file imports.
+        let p = write(dir.path(), name, base);
+        import(&p).unwrap_or_else(|e| panic!("{e}"));
+        for k in 0..2000 {
+            let b = mutate(&mut rng, base);
+            let p = write(dir.path(), name, &b);
+            let _ = probe_model(&p);
+            match import_with(&p, 0, &opts) {
+                Ok((tris, _)) => {
+                    ok += 1;
+                    for (i, t) in tris.iter().enumerate() {
+                        assert_eq!(t.id, i as u32);
+                        assert!(t.positions.iter().all(|p| p.is_finite()), "{name} #{k}");
+                        for n in t.normals {
+                            assert!((n.length() - 1.0).abs() < 1e-3, "{name} #{k}: {n:?}");
+                        }
+                    }
+                }
+                Err(e) => {
+                    err += 1;
+                    let e = e.to_string();
+                    assert!(e.starts_with(&format!("{}: ", p.display())), "{e}");
+                }
+            }
+        }
+    }
+    eprintln!("fuzz: {ok} Ok, {err} Err");
+    assert!(ok > 100 && err > 1000, "{ok} Ok, {err} Err");
+}
+
+// ------------------------------------------------------------- real models
+
+/// Unpacks a model of /work/shared/models into `dir`; None if it is absent.
+fn real_model(dir: &Path, name: &str) -> Option<PathBuf> {
+    let src = Path::new("/work/shared/models").join(format!("{name}.ply.zst"));
+    let Ok(f) = std::fs::File::open(&src) else {
+        eprintln!("skipping: {} not found", src.display());
+        return None;
+    };
+    let dst = dir.join(format!("{name}.ply"));
+    let mut out = std::fs::File::create(&dst).unwrap();
+    zstd::stream::copy_decode(f, &mut out).unwrap();
+    Some(dst)
+}
+
+fn check_real(
+    name: &str,
+    triangles: u64,
+    vertices: u64,
+    lo: [f32; 3],
+    hi: [f32; 3],
+) -> Vec<Triangle> {
+    let dir = tempfile::tempdir().unwrap();
+    let Some(p) = real_model(dir.path(), name) else {
+        return Vec::new();
+    };
+    let pr = probe_model(&p).unwrap();
+    assert_eq!(
+        (pr.format, pr.vertices, pr.faces),
+        (ModelFormat::Ply, vertices, triangles)
+    );
+    let (tris, s) = import(&p).unwrap();
+    assert_eq!(
+        s,
+        ImportSummary {
+            vertices,
+            triangles,
+            has_normals: false,
+            has_colors: false
+        }
+    );
+    let (mut min, mut max) = (Vec3::INFINITY, Vec3::NEG_INFINITY);
+    for (i, t) in tris.iter().enumerate() {
+        assert_eq!(t.id, i as u32);
+        assert_eq!(t.colors, [DEFAULT_COLOR; 3]);
+        for n in t.normals {
+            assert!((n.length() - 1.0).abs() < 1e-4, "triangle {i}: {n:?}");
+        }
+        for p in t.positions {
+            min = min.min(p);
+            max = max.max(p);
+        }
+    }
+    assert!(
+        (min - Vec3::from_array(lo)).abs().max_element() < 1e-3,
+        "{min:?}"
+    );
+    assert!(
+        (max - Vec3::from_array(hi)).abs().max_element() < 1e-3,
+        "{max:?}"
+    );
+    tris
+}
+
+#[test]
+fn real_stanford_bunny() {
+    check_real(
+        "stanford-bunny",
+        69_451,
+        35_947,
+        [-0.0947, 0.0330, -0.0619],
+        [0.0610, 0.1873, 0.0588],
+    );
+}
+
+#[test]
+fn real_igea() {
+    check_real(
+        "igea",
+        268_686,
+        134_345,
+        [-0.0346, -0.0497, -0.0495],
+        [0.0346, 0.0497, 0.0495],
+    );
+}
+
+#[test]
+fn real_living_room_with_zero_area_triangles() {
+    let tris = check_real(
+        "bitterli-living-room-3",
+        787_232,
+        394_190,
+        [-6.022, -0.003, -6.679],
+        [0.317, 2.722, 0.000],
+    );
+    if !tris.is_empty() {
+        let degenerate = tris
+            .iter()
+            .filter(|t| {
+                let p = t.positions;
+                p[0] == p[1] || p[1] == p[2] || p[0] == p[2]
+            })
+            .count();
+        assert!(degenerate >= 288, "{degenerate}");
+    }
+}
+
+// -------------------------------------------------------------- throughput
+
+/// Import speed on a large binary little-endian PLY (a grid of triangles).
+/// `DRAY_IMPORT_BENCH_TRIS=10000000 cargo test --release -p dray-scene
+/// --test import -- --ignored --nocapture bench`
+#[test]
+#[ignore]
+fn bench_binary_ply_import() {
+    use std::io::Write;
+    let target: u64 = std::env::var("DRAY_IMPORT_BENCH_TRIS")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(10_000_000);
+    let side = ((target / 2) as f64).sqrt().ceil() as u32 + 1;
+    let nv = side as u64 * side as u64;
+    let nt = 2 * (side as u64 - 1) * (side as u64 - 1);
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("grid.ply");
+    let t0 = std::time::Instant::now();
+    {
+        let mut w =
+            std::io::BufWriter::with_capacity(1 << 20, std::fs::File::create(&path).unwrap());
+        write!(
+            w,
+            "ply\nformat binary_little_endian 1.0\nelement vertex {nv}\nproperty float x\nproperty float y\nproperty float z\nelement face {nt}\nproperty list uchar int vertex_indices\nend_header\n"
+        )
+        .unwrap();
+        for y in 0..side {
+            for x in 0..side {
+                let z = ((x ^ y) % 7) as f32 * 0.01;
+                for c in [x as f32, y as f32, z] {
+                    w.write_all(&c.to_le_bytes()).unwrap();
+                }
+            }
+        }
+        for y in 0..side - 1 {
+            for x in 0..side - 1 {
+                let i = (y * side + x) as i32;
+                let s = side as i32;
+                for f in [[i, i + 1, i + s + 1], [i, i + s + 1, i + s]] {
+                    w.write_all(&[3]).unwrap();
+                    for k in f {
+                        w.write_all(&k.to_le_bytes()).unwrap();
+                    }
+                }
+            }
+        }
+    }
+    eprintln!(
+        "wrote {nt} triangles, {nv} vertices in {:.1?}",
+        t0.elapsed()
+    );
+    for round in 0..2 {
+        let t0 = std::time::Instant::now();
+        let mut acc = 0f32;
+        let s = import_model(
+            &path,
+            0,
+            &ImportOptions {
+                max_vertex_bytes: 8 << 30,
+            },
+            &mut |t| {
+                acc += t.normals[0].z + t.positions[2].x;
+                Ok(())
+            },
+        )
+        .unwrap();
+        let dt = t0.elapsed().as_secs_f64();
+        assert_eq!(s.triangles, nt);
+        eprintln!(
+            "round {round}: {nt} triangles in {dt:.2} s: {:.1} M triangles/s (computed normals, two face passes) [{acc}]",
+            nt as f64 / dt / 1e6
+        );
+    }
 }

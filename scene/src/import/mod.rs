@@ -191,7 +191,7 @@ impl VertexTable {
 /// degenerate triangle.
 #[inline]
 fn fix_normals(p: &[Vec3; 3], mut n: [Vec3; 3]) -> [Vec3; 3] {
-    if n.iter().any(|v| *v == Vec3::ZERO) {
+    if n.contains(&Vec3::ZERO) {
         let g = (p[1] - p[0]).cross(p[2] - p[0]).normalize_or_zero();
         let g = if g == Vec3::ZERO { Vec3::Z } else { g };
         for v in &mut n {
