@@ -1315,76 +1315,86 @@ fn real_living_room_with_zero_area_triangles() {
 
 // -------------------------------------------------------------- throughput
 
+/// Writes a binary little-endian PLY grid of about `target` triangles (with
+/// constant vertex normals if asked); returns (vertices, triangles).
+fn write_grid(path: &Path, target: u64, with_normals: bool) -> (u64, u64) {
+    use std::io::Write;
+    let side = ((target / 2) as f64).sqrt().ceil() as u32 + 1;
+    let nv = side as u64 * side as u64;
+    let nt = 2 * (side as u64 - 1) * (side as u64 - 1);
+    let mut w = std::io::BufWriter::with_capacity(1 << 20, std::fs::File::create(path).unwrap());
+    let normals = if with_normals {
+        "property float nx\nproperty float ny\nproperty float nz\n"
+    } else {
+        ""
+    };
+    write!(
+        w,
+        "ply\nformat binary_little_endian 1.0\nelement vertex {nv}\n{XYZ}{normals}\
+         element face {nt}\nproperty list uchar int vertex_indices\nend_header\n"
+    )
+    .unwrap();
+    for y in 0..side {
+        for x in 0..side {
+            let z = ((x ^ y) % 7) as f32 * 0.01;
+            for c in [x as f32, y as f32, z] {
+                w.write_all(&c.to_le_bytes()).unwrap();
+            }
+            if with_normals {
+                for c in [0.1f32, 0.2, 1.0] {
+                    w.write_all(&c.to_le_bytes()).unwrap();
+                }
+            }
+        }
+    }
+    for y in 0..side - 1 {
+        for x in 0..side - 1 {
+            let i = (y * side + x) as i32;
+            let s = side as i32;
+            for f in [[i, i + 1, i + s + 1], [i, i + s + 1, i + s]] {
+                w.write_all(&[3]).unwrap();
+                for k in f {
+                    w.write_all(&k.to_le_bytes()).unwrap();
+                }
+            }
+        }
+    }
+    w.flush().unwrap();
+    (nv, nt)
+}
+
 /// Import speed on a large binary little-endian PLY (a grid of triangles).
 /// `DRAY_IMPORT_BENCH_TRIS=10000000 cargo test --release -p dray-scene
 /// --test import -- --ignored --nocapture bench`
 #[test]
 #[ignore]
 fn bench_binary_ply_import() {
-    use std::io::Write;
     let target: u64 = std::env::var("DRAY_IMPORT_BENCH_TRIS")
         .ok()
         .and_then(|s| s.parse().ok())
         .unwrap_or(10_000_000);
-    let side = ((target / 2) as f64).sqrt().ceil() as u32 + 1;
-    let nv = side as u64 * side as u64;
-    let nt = 2 * (side as u64 - 1) * (side as u64 - 1);
     let dir = tempfile::tempdir().unwrap();
-    let path = dir.path().join("grid.ply");
-    let t0 = std::time::Instant::now();
-    {
-        let mut w =
-            std::io::BufWriter::with_capacity(1 << 20, std::fs::File::create(&path).unwrap());
-        write!(
-            w,
-            "ply\nformat binary_little_endian 1.0\nelement vertex {nv}\nproperty float x\nproperty float y\nproperty float z\nelement face {nt}\nproperty list uchar int vertex_indices\nend_header\n"
-        )
-        .unwrap();
-        for y in 0..side {
-            for x in 0..side {
-                let z = ((x ^ y) % 7) as f32 * 0.01;
-                for c in [x as f32, y as f32, z] {
-                    w.write_all(&c.to_le_bytes()).unwrap();
-                }
-            }
-        }
-        for y in 0..side - 1 {
-            for x in 0..side - 1 {
-                let i = (y * side + x) as i32;
-                let s = side as i32;
-                for f in [[i, i + 1, i + s + 1], [i, i + s + 1, i + s]] {
-                    w.write_all(&[3]).unwrap();
-                    for k in f {
-                        w.write_all(&k.to_le_bytes()).unwrap();
-                    }
-                }
-            }
-        }
-    }
-    eprintln!(
-        "wrote {nt} triangles, {nv} vertices in {:.1?}",
-        t0.elapsed()
-    );
-    for round in 0..2 {
-        let t0 = std::time::Instant::now();
-        let mut acc = 0f32;
-        let s = import_model(
-            &path,
-            0,
-            &ImportOptions {
+    for with_normals in [false, true] {
+        let path = dir.path().join(format!("grid-{with_normals}.ply"));
+        let (nv, nt) = write_grid(&path, target, with_normals);
+        eprintln!("{nt} triangles, {nv} vertices, normals in the file: {with_normals}");
+        for round in 0..3 {
+            let t0 = std::time::Instant::now();
+            let mut acc = 0f32;
+            let opts = ImportOptions {
                 max_vertex_bytes: 8 << 30,
-            },
-            &mut |t| {
+            };
+            let s = import_model(&path, 0, &opts, &mut |t| {
                 acc += t.normals[0].z + t.positions[2].x;
                 Ok(())
-            },
-        )
-        .unwrap();
-        let dt = t0.elapsed().as_secs_f64();
-        assert_eq!(s.triangles, nt);
-        eprintln!(
-            "round {round}: {nt} triangles in {dt:.2} s: {:.1} M triangles/s (computed normals, two face passes) [{acc}]",
-            nt as f64 / dt / 1e6
-        );
+            })
+            .unwrap();
+            let dt = t0.elapsed().as_secs_f64();
+            assert_eq!(s.triangles, nt);
+            eprintln!(
+                "  round {round}: {dt:.3} s, {:.1} M triangles/s [{acc}]",
+                nt as f64 / dt / 1e6
+            );
+        }
     }
 }

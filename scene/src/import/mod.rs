@@ -149,11 +149,12 @@ impl VertexTable {
     /// unnormalized cross product) to its corners' normals.
     #[inline]
     pub fn accumulate(&mut self, idx: [u32; 3]) {
-        let [a, b, c] = idx.map(|i| self.positions[i as usize]);
-        let n = (b - a).cross(c - a);
-        for i in idx {
-            self.normals[i as usize] += n;
-        }
+        let [i, j, k] = idx.map(|i| i as usize);
+        let p = &self.positions;
+        let n = (p[j] - p[i]).cross(p[k] - p[i]);
+        self.normals[i] += n;
+        self.normals[j] += n;
+        self.normals[k] += n;
     }
 
     /// Turns accumulated (or input) normals into unit normals, zero where the
@@ -168,9 +169,10 @@ impl VertexTable {
     /// normals (zero where none is usable: replaced by the geometric normal).
     #[inline]
     pub fn triangle(&self, idx: [u32; 3], normals: [Vec3; 3], id: u32) -> Triangle {
-        let positions = idx.map(|i| self.positions[i as usize]);
+        let [a, b, c] = idx.map(|i| i as usize);
+        let positions = [self.positions[a], self.positions[b], self.positions[c]];
         let colors = match &self.colors {
-            Some(c) => idx.map(|i| c[i as usize]),
+            Some(col) => [col[a], col[b], col[c]],
             None => [DEFAULT_COLOR; 3],
         };
         Triangle {
@@ -183,7 +185,8 @@ impl VertexTable {
 
     #[inline]
     pub fn vertex_normals(&self, idx: [u32; 3]) -> [Vec3; 3] {
-        idx.map(|i| self.normals[i as usize])
+        let n = &self.normals;
+        [n[idx[0] as usize], n[idx[1] as usize], n[idx[2] as usize]]
     }
 }
 

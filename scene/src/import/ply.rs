@@ -442,6 +442,9 @@ trait Values {
     fn restore(&mut self, m: Self::Mark) -> Result<(), ImportError>;
     /// The input, for the binary little-endian fast path.
     fn fast_le(&mut self) -> Option<&mut Input>;
+    /// Binary only: consumes a whole fixed-size record of `stride` bytes and
+    /// returns where it starts in `input().buf`, with the byte order.
+    fn fixed_record(&mut self, stride: usize) -> Result<Option<(usize, bool)>, ImportError>;
 }
 
 struct Binary {
@@ -545,6 +548,16 @@ impl Values for Binary {
     }
     fn restore(&mut self, m: u64) -> Result<(), ImportError> {
         self.inp.seek(m)
+    }
+    #[inline]
+    fn fixed_record(&mut self, stride: usize) -> Result<Option<(usize, bool)>, ImportError> {
+        if !self.inp.fill(stride)? {
+            self.val_off = self.rec_off;
+            return Err(self.eof());
+        }
+        let at = self.inp.pos;
+        self.inp.pos += stride;
+        Ok(Some((at, self.big)))
     }
     fn fast_le(&mut self) -> Option<&mut Input> {
         if self.big {
@@ -734,6 +747,9 @@ impl Values for Ascii {
     fn fast_le(&mut self) -> Option<&mut Input> {
         None
     }
+    fn fixed_record(&mut self, _stride: usize) -> Result<Option<(usize, bool)>, ImportError> {
+        Ok(None)
+    }
 }
 
 fn skip_element<V: Values>(v: &mut V, e: &Element) -> Result<(), ImportError> {
@@ -765,6 +781,9 @@ fn skip_element<V: Values>(v: &mut V, e: &Element) -> Result<(), ImportError> {
     }
     Ok(())
 }
+
+/// A vertex property in a fixed-size record: (slot, byte offset, type).
+type UsedProp = (usize, usize, Scalar);
 
 fn load_vertices<V: Values>(
     v: &mut V,
@@ -801,10 +820,37 @@ fn load_vertices<V: Values>(
     } else {
         None
     };
+    // Fixed-size records (no lists): the byte offset of each used property.
+    let mut fixed: Option<(usize, Vec<UsedProp>)> = Some((0, Vec::new()));
+    for (p, slot) in e.props.iter().zip(&lay.slots) {
+        match (p.kind, &mut fixed) {
+            (Kind::Scalar(t), Some((stride, used))) => {
+                if let Some(s) = slot {
+                    used.push((*s, *stride, t));
+                }
+                *stride += t.size();
+            }
+            _ => fixed = None,
+        }
+    }
+    let fixed = fixed.filter(|(stride, _)| *stride > 0 && *stride <= 1024);
     for i in 0..e.count {
         v.begin(i);
         let mut vals = [0f64; 9];
+        let mut done = false;
+        if let Some((stride, used)) = &fixed {
+            if let Some((at, big)) = v.fixed_record(*stride)? {
+                let buf = &v.input().buf[at..];
+                for &(s, off, t) in used {
+                    vals[s] = t.load(&buf[off..], big);
+                }
+                done = true;
+            }
+        }
         for (p, slot) in e.props.iter().zip(&lay.slots) {
+            if done {
+                break;
+            }
             match (p.kind, slot) {
                 (Kind::Scalar(t), Some(s)) => vals[*s] = v.scalar(t)?,
                 (Kind::Scalar(t), None) => v.skip(t)?,
@@ -1012,6 +1058,7 @@ fn run<V: Values>(
     sink: &mut dyn FnMut(&Triangle) -> std::io::Result<()>,
 ) -> Result<ImportSummary, ImportError> {
     let path = v.input().path.clone();
+    let t0 = std::time::Instant::now();
     let mut table = None;
     let mut face_mark = None;
     for (ei, e) in h.elements.iter().enumerate() {
@@ -1038,6 +1085,7 @@ fn run<V: Values>(
         ));
     };
     let fe = &h.elements[lay.face];
+    tracing::debug!("{}: vertices loaded in {:?}", path.display(), t0.elapsed());
     v.set_element(&fe.name);
     let nverts = table.positions.len() as u32;
     let mut ids = Ids::new(first_id);
@@ -1051,6 +1099,7 @@ fn run<V: Values>(
         })?;
         table.normalize();
         ids.check(&path, count)?;
+        tracing::debug!("{}: normals computed at {:?}", path.display(), t0.elapsed());
     }
     v.restore(face_mark)?;
     let mut triangles = 0u64;
