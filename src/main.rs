@@ -209,8 +209,11 @@ fn generate(triangles: u64, seed: u64, out: &Path) -> Result<()> {
 fn build_database(opts: &PreprocessOptions) -> Result<()> {
     let report = preprocess(opts, &Progress::auto())?;
     let m = &report.manifest;
+    let peak = dray_runtime::process::peak_rss_bytes()
+        .map(|b| format!(", peak RSS {} MiB", b >> 20))
+        .unwrap_or_default();
     println!(
-        "{}: {} triangles -> {} voxels in {:.1} s ({:.2} M triangles/s), replication {:.3}",
+        "{}: {} triangles -> {} voxels in {:.1} s ({:.2} M triangles/s), replication {:.3}{peak}",
         opts.out.display(),
         m.input_triangles,
         m.voxels.len(),

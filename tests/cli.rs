@@ -77,6 +77,41 @@ fn generate_preprocess_verify_info() {
     assert!(text(&out).contains("voxel "), "{}", text(&out));
 }
 
+/// `--memory-mb` bounds the whole process, whatever the model size: a model
+/// that needs several out-of-core chunks at 64 MiB stays under it.
+#[test]
+fn preprocessing_stays_within_the_memory_budget() {
+    let dir = tempfile::tempdir().unwrap();
+    let model = dir.path().join("plant.ply");
+    let out = dray(&[
+        "generate",
+        "plant",
+        "--triangles",
+        "600000",
+        "--out",
+        s(&model),
+    ]);
+    assert!(out.status.success(), "{}", text(&out));
+    let db = dir.path().join("db");
+    let out = dray(&[
+        "preprocess",
+        s(&model),
+        "--out",
+        s(&db),
+        "--memory-mb",
+        "64",
+    ]);
+    assert!(out.status.success(), "{}", text(&out));
+    let stdout = String::from_utf8(out.stdout).unwrap();
+    if let Some(rest) = stdout.split("peak RSS ").nth(1) {
+        let mib: u64 = rest.split_whitespace().next().unwrap().parse().unwrap();
+        assert!(mib < 64, "peak RSS {mib} MiB over a 64 MiB budget");
+    } else {
+        assert!(!cfg!(target_os = "linux"), "no peak RSS reported: {stdout}");
+    }
+    assert!(dray(&["verify", s(&db)]).status.success());
+}
+
 #[test]
 fn bad_input_is_a_clear_error_not_a_panic() {
     let dir = tempfile::tempdir().unwrap();

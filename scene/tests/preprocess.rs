@@ -122,28 +122,30 @@ fn random_soup_rays_match_brute_force_out_of_core() {
     check_rays(&db, &tris, 3000, 1);
 }
 
-#[test]
-fn generated_plant_is_placed_exactly_and_rays_match() {
-    let dir = tempfile::tempdir().unwrap();
-    let model = dir.path().join("plant.ply");
-    generate_plant(
-        &PlantParams {
-            triangles: 60_000,
-            seed: 3,
-        },
-        &model,
-        &mut |_| {},
-    )
-    .unwrap();
-    let tris = read_positions(&model);
-    assert_eq!(tris.len(), 60_000);
-    let db = build(vec![model], &dir.path().join("db"), 512, Some(20_000));
-    check_placement(&db, &tris);
-    check_rays(&db, &tris, 3000, 2);
-    let report = verify(&db, &Progress::hidden());
-    assert!(report.is_ok(), "{:?}", report.problems);
-    let replication = db.manifest.stored_triangles as f64 / 60_000.0;
-    assert!(replication < 1.5, "replication {replication}");
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 4, ..ProptestConfig::default() })]
+
+    /// Over the generator's output: exact placement, rays equal brute force,
+    /// `verify` agrees, and replication stays low.
+    #[test]
+    fn generated_plants_are_placed_exactly_and_rays_match(
+        seed in any::<u64>(),
+        triangles in 10_000u64..80_000,
+        max_tris in 128u32..2048,
+    ) {
+        let dir = tempfile::tempdir().unwrap();
+        let model = dir.path().join("plant.ply");
+        generate_plant(&PlantParams { triangles, seed }, &model, &mut |_| {}).unwrap();
+        let tris = read_positions(&model);
+        prop_assert_eq!(tris.len() as u64, triangles);
+        let db = build(vec![model], &dir.path().join("db"), max_tris, Some(triangles / 3));
+        check_placement(&db, &tris);
+        check_rays(&db, &tris, 2000, seed);
+        let report = verify(&db, &Progress::hidden());
+        prop_assert!(report.is_ok(), "{:?}", report.problems);
+        let replication = db.manifest.stored_triangles as f64 / triangles as f64;
+        prop_assert!(replication < 1.5, "replication {}", replication);
+    }
 }
 
 #[test]

@@ -62,9 +62,13 @@ impl<'a> Sink<'a> {
             _ => PathBuf::from("."),
         };
         let tmp = |suffix: &str| {
-            tempfile::Builder::new()
-                .prefix(".dray-plant-")
-                .suffix(suffix)
+            let mut builder = tempfile::Builder::new();
+            builder.prefix(".dray-plant-").suffix(suffix);
+            // The finished file is an ordinary output: readable by others
+            // (as the umask allows), not tempfile's private 0600.
+            #[cfg(unix)]
+            builder.permissions(std::os::unix::fs::PermissionsExt::from_mode(0o644));
+            builder
                 .tempfile_in(&dir)
                 .map_err(io_err(out, "create a temporary file next to"))
         };

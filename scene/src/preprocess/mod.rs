@@ -224,8 +224,13 @@ pub fn preprocess(
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_else(|| "db".into());
-    let work = tempfile::Builder::new()
-        .prefix(&format!(".{name}.building-"))
+    let prefix = format!(".{name}.building-");
+    let mut builder = tempfile::Builder::new();
+    builder.prefix(&prefix);
+    // Becomes the database: an ordinary directory, not tempfile's 0700.
+    #[cfg(unix)]
+    builder.permissions(std::os::unix::fs::PermissionsExt::from_mode(0o755));
+    let work = builder
         .tempdir_in(&parent)
         .map_err(|e| PreprocessError::io(&parent, e))?;
     let spill_dir = work.path().join("spill");
