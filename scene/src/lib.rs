@@ -15,6 +15,7 @@ pub mod import;
 pub mod mesh;
 pub mod preprocess;
 pub mod progress;
+pub mod rng;
 pub mod voxel;
 
 pub use geometry::{Aabb, Hit, Ray};

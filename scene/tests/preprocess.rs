@@ -101,7 +101,7 @@ proptest! {
     #[test]
     fn random_meshes_are_placed_exactly(seed in any::<u64>(), n in 1usize..3000, max_tris in 4u32..200, chunk in 50u64..2000) {
         let dir = tempfile::tempdir().unwrap();
-        let tris = random_soup(&mut Rng(seed), n);
+        let tris = random_soup(&mut Rng::new(seed), n);
         let model = dir.path().join("soup.ply");
         write_ply(&model, &tris);
         let db = build(vec![model], &dir.path().join("db"), max_tris, Some(chunk));
@@ -114,7 +114,7 @@ proptest! {
 #[test]
 fn random_soup_rays_match_brute_force_out_of_core() {
     let dir = tempfile::tempdir().unwrap();
-    let tris = random_soup(&mut Rng(7), 20_000);
+    let tris = random_soup(&mut Rng::new(7), 20_000);
     let model = dir.path().join("soup.ply");
     write_ply(&model, &tris);
     let db = build(vec![model], &dir.path().join("db"), 64, Some(3000));
@@ -151,7 +151,7 @@ proptest! {
 #[test]
 fn several_inputs_and_copies_continue_ids() {
     let dir = tempfile::tempdir().unwrap();
-    let mut rng = Rng(11);
+    let mut rng = Rng::new(11);
     let a = random_soup(&mut rng, 500);
     let b = random_soup(&mut rng, 700);
     write_ply(&dir.path().join("a.ply"), &a);
@@ -210,7 +210,7 @@ fn living_room_rays_match_brute_force() {
 }
 
 fn small_db(dir: &Path) -> PathBuf {
-    let tris = random_soup(&mut Rng(5), 3000);
+    let tris = random_soup(&mut Rng::new(5), 3000);
     write_ply(&dir.join("m.ply"), &tris);
     build(vec![dir.join("m.ply")], &dir.join("db"), 100, None);
     dir.join("db")

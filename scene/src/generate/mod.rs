@@ -69,7 +69,6 @@
 
 mod mesh;
 mod plant;
-mod rng;
 mod sink;
 
 use crate::geometry::Aabb;

@@ -2,9 +2,9 @@
 //! [`generate`](super) for the overall picture.
 
 use super::mesh::Part;
-use super::rng::Rng;
 use super::sink::Sink;
 use super::GenerateError;
+use crate::rng::Rng;
 use glam::Vec3;
 
 /// Triangles a unit of average weight gets.

@@ -302,19 +302,14 @@ fn reservoir_sample(
 ) -> Result<Vec<[Vec3; 3]>, PreprocessError> {
     let mut sample = Vec::with_capacity(k.min(stream.count() as usize));
     let mut seen = 0u64;
-    let mut rng = 0x9E37_79B9_7F4A_7C15u64;
+    let mut rng = crate::rng::Rng::new(stream.count());
     stream.for_each(&mut |t| {
         seen += 1;
         if sample.len() < k {
             sample.push(t.positions);
         } else {
-            // SplitMix64 step; modulo bias is irrelevant at these sizes.
-            rng = rng.wrapping_add(0x9E37_79B9_7F4A_7C15);
-            let mut z = rng;
-            z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-            z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-            z ^= z >> 31;
-            let j = z % seen;
+            // Modulo bias is irrelevant at these sizes.
+            let j = rng.next_u64() % seen;
             if (j as usize) < k {
                 sample[j as usize] = t.positions;
             }

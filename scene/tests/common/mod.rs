@@ -8,34 +8,25 @@ use glam::Vec3;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
-/// SplitMix64: deterministic and dependency-free.
-pub struct Rng(pub u64);
+pub use dray_scene::rng::Rng;
 
-impl Rng {
-    pub fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-    pub fn unit(&mut self) -> f32 {
-        (self.next_u64() >> 40) as f32 / (1u64 << 24) as f32
-    }
-    pub fn range(&mut self, lo: f32, hi: f32) -> f32 {
-        lo + (hi - lo) * self.unit()
-    }
-    pub fn below(&mut self, n: usize) -> usize {
-        (self.next_u64() % n as u64) as usize
-    }
-    pub fn in_box(&mut self, b: &Aabb) -> Vec3 {
+/// Random points and directions for the tests.
+pub trait RngExt {
+    fn in_box(&mut self, b: &Aabb) -> Vec3;
+    fn direction(&mut self) -> Vec3;
+    fn index(&mut self, n: usize) -> usize;
+}
+
+impl RngExt for Rng {
+    fn in_box(&mut self, b: &Aabb) -> Vec3 {
         Vec3::new(
             self.range(b.min[0], b.max[0]),
             self.range(b.min[1], b.max[1]),
             self.range(b.min[2], b.max[2]),
         )
     }
-    pub fn direction(&mut self) -> Vec3 {
+
+    fn direction(&mut self) -> Vec3 {
         loop {
             let v = Vec3::new(
                 self.range(-1.0, 1.0),
@@ -46,6 +37,10 @@ impl Rng {
                 return v.normalize();
             }
         }
+    }
+
+    fn index(&mut self, n: usize) -> usize {
+        self.below(n as u32) as usize
     }
 }
 
@@ -115,7 +110,7 @@ impl NextUp for f32 {
 /// Rays of three kinds: from outside the model towards a random point of
 /// it, from inside in a random direction, and aimed at a random triangle.
 pub fn test_rays(tris: &[[Vec3; 3]], bounds: &Aabb, n: usize, seed: u64) -> Vec<Ray> {
-    let mut rng = Rng(seed);
+    let mut rng = Rng::new(seed);
     let grown = bounds.expanded(bounds.diagonal() * 0.5);
     (0..n)
         .map(|i| match i % 3 {
@@ -132,7 +127,7 @@ pub fn test_rays(tris: &[[Vec3; 3]], bounds: &Aabb, n: usize, seed: u64) -> Vec<
                 dir: rng.direction(),
             },
             _ => {
-                let t = tris[rng.below(tris.len())];
+                let t = tris[rng.index(tris.len())];
                 let (a, b) = (rng.unit(), rng.unit());
                 let (a, b) = if a + b > 1.0 {
                     (1.0 - a, 1.0 - b)

@@ -1,7 +1,8 @@
 //! A small deterministic PRNG (SplitMix64): same seed, same sequence, on
-//! every platform and in every build.
+//! every platform and in every build. Used by the plant generator, the
+//! preprocessor's sampling and the tests.
 
-pub(crate) struct Rng(u64);
+pub struct Rng(u64);
 
 impl Rng {
     pub fn new(seed: u64) -> Rng {
