@@ -2,6 +2,8 @@
 //! models, one test per kind of bad input (the error must name the file, the
 //! place and the problem), a fuzz-style robustness test and the real bunny.
 
+mod common;
+
 use dray_scene::import::{
     import_model, probe_model, ImportError, ImportOptions, ImportSummary, ModelFormat,
 };
@@ -1208,19 +1210,6 @@ fn fuzz_mutated_files_never_panic() {
 
 // ------------------------------------------------------------- real models
 
-/// Unpacks a model of /work/shared/models into `dir`; None if it is absent.
-fn real_model(dir: &Path, name: &str) -> Option<PathBuf> {
-    let src = Path::new("/work/shared/models").join(format!("{name}.ply.zst"));
-    let Ok(f) = std::fs::File::open(&src) else {
-        eprintln!("skipping: {} not found", src.display());
-        return None;
-    };
-    let dst = dir.join(format!("{name}.ply"));
-    let mut out = std::fs::File::create(&dst).unwrap();
-    zstd::stream::copy_decode(f, &mut out).unwrap();
-    Some(dst)
-}
-
 fn check_real(
     name: &str,
     triangles: u64,
@@ -1229,9 +1218,7 @@ fn check_real(
     hi: [f32; 3],
 ) -> Vec<Triangle> {
     let dir = tempfile::tempdir().unwrap();
-    let Some(p) = real_model(dir.path(), name) else {
-        return Vec::new();
-    };
+    let p = common::unpack_model(name, dir.path());
     let pr = probe_model(&p).unwrap();
     assert_eq!(
         (pr.format, pr.vertices, pr.faces),
