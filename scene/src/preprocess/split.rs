@@ -107,7 +107,8 @@ mod tests {
 
     #[test]
     fn separates_two_clusters_between_them() {
-        let cell = Aabb::new(Vec3::ZERO, Vec3::splat(10.0));
+        // The cell fits the clusters tightly, so the only gain is between them.
+        let cell = Aabb::new(Vec3::new(0.0, 1.0, 1.0), Vec3::new(9.0, 2.0, 2.0));
         let mut refs = vec![];
         for i in 0..10 {
             let x = i as f32 * 0.1;
@@ -128,6 +129,15 @@ mod tests {
             r += b as usize;
         }
         assert!(l <= 10 && r <= 10 && l + r == 20, "{p:?} {l} {r}");
+    }
+
+    #[test]
+    fn cuts_off_empty_space_first() {
+        let cell = Aabb::new(Vec3::ZERO, Vec3::splat(10.0));
+        let refs = vec![Aabb::new(Vec3::splat(0.5), Vec3::splat(1.5)); 20];
+        let p = choose_plane(&cell, &refs).unwrap();
+        let (l, r) = sides(&refs[0], p);
+        assert!(l && !r, "{p:?} should leave the empty part on its own");
     }
 
     #[test]
