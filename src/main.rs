@@ -207,7 +207,18 @@ fn generate(triangles: u64, seed: u64, out: &Path) -> Result<()> {
 }
 
 fn build_database(opts: &PreprocessOptions) -> Result<()> {
-    let report = preprocess(opts, &Progress::auto())?;
+    let progress = Progress::auto();
+    let cancel = progress.cancel_flag();
+    // Ctrl-C stops the build at its next check; the temporary directory is
+    // removed on the way out. A second Ctrl-C kills the process outright.
+    ctrlc::set_handler(move || {
+        if cancel.swap(true, std::sync::atomic::Ordering::Relaxed) {
+            std::process::exit(130);
+        }
+        eprintln!("\ncancelling (Ctrl-C again to kill)...");
+    })
+    .context("installing the Ctrl-C handler")?;
+    let report = preprocess(opts, &progress)?;
     let m = &report.manifest;
     let peak = dray_runtime::process::peak_rss_bytes()
         .map(|b| format!(", peak RSS {} MiB", b >> 20))

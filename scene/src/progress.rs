@@ -4,8 +4,8 @@
 
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use std::io::IsTerminal;
-use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::Mutex;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 const LOG_EVERY: Duration = Duration::from_secs(5);
@@ -22,6 +22,7 @@ pub struct Progress {
     stage: Mutex<(String, Instant)>,
     total: AtomicU64,
     done: AtomicU64,
+    cancelled: Arc<AtomicBool>,
 }
 
 impl Progress {
@@ -53,6 +54,7 @@ impl Progress {
             stage: Mutex::new((String::new(), Instant::now())),
             total: AtomicU64::new(0),
             done: AtomicU64::new(0),
+            cancelled: Arc::new(AtomicBool::new(false)),
         }
     }
 
@@ -102,6 +104,16 @@ impl Progress {
                 }
             }
         }
+    }
+
+    /// A flag that, once set (say by a Ctrl-C handler), makes the long
+    /// commands stop at their next check and clean up after themselves.
+    pub fn cancel_flag(&self) -> Arc<AtomicBool> {
+        self.cancelled.clone()
+    }
+
+    pub fn is_cancelled(&self) -> bool {
+        self.cancelled.load(Ordering::Relaxed)
     }
 
     /// Clears the bar.

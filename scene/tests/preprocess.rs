@@ -330,3 +330,32 @@ fn a_failed_run_leaves_nothing_and_keeps_the_old_database() {
     assert_eq!(Database::open(&path).unwrap().manifest, again.manifest);
     assert_eq!(again.manifest.build.max_triangles, 50);
 }
+
+#[test]
+fn a_cancelled_run_cleans_up() {
+    let dir = tempfile::tempdir().unwrap();
+    write_ply(
+        &dir.path().join("m.ply"),
+        &random_soup(&mut Rng::new(9), 5000),
+    );
+    let progress = Progress::hidden();
+    progress
+        .cancel_flag()
+        .store(true, std::sync::atomic::Ordering::Relaxed);
+    let result = preprocess(
+        &PreprocessOptions::new(vec![dir.path().join("m.ply")], dir.path().join("db")),
+        &progress,
+    );
+    assert!(
+        matches!(
+            result,
+            Err(dray_scene::preprocess::PreprocessError::Cancelled)
+        ),
+        "{result:?}"
+    );
+    let names: Vec<_> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .collect();
+    assert_eq!(names, vec![std::ffi::OsString::from("m.ply")]);
+}

@@ -168,6 +168,9 @@ pub fn build_stream(
     );
     let mut walk = Vec::new();
     stream.for_each(&mut |t| {
+        if ctx.progress.is_cancelled() {
+            return Err(PreprocessError::Cancelled);
+        }
         walk.clear();
         walk.push((&top, cell, clip_into(&t, &t.bounds(), &cell)));
         while let Some((node, node_cell, cb)) = walk.pop() {
@@ -411,6 +414,9 @@ fn emit_leaf(
     cell: Aabb,
     depth: u32,
 ) -> Result<BuildNode, PreprocessError> {
+    if ctx.progress.is_cancelled() {
+        return Err(PreprocessError::Cancelled);
+    }
     let leaf_tris: Vec<Triangle> = refs.iter().map(|r| tris[r.index as usize]).collect();
     let voxel = Voxel::build(cell, &leaf_tris);
     let blob = voxel.encode(ctx.zstd_level);

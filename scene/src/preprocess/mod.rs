@@ -122,6 +122,8 @@ pub enum PreprocessError {
     Options(String),
     #[error("{0}")]
     Model(String),
+    #[error("cancelled; nothing was written")]
+    Cancelled,
     #[error("{path}: exists and is not a dray database; refusing to replace it")]
     NotADatabase { path: PathBuf },
 }
@@ -258,6 +260,9 @@ pub fn preprocess(
                 max_vertex_bytes: budget / 2,
             },
             &mut |t| {
+                if progress.is_cancelled() {
+                    return Err(io::Error::other("cancelled"));
+                }
                 pending += 1;
                 if pending == 4096 {
                     progress.advance(pending);
@@ -265,7 +270,14 @@ pub fn preprocess(
                 }
                 writer.push(t)
             },
-        )?;
+        )
+        .map_err(|e| {
+            if progress.is_cancelled() {
+                PreprocessError::Cancelled
+            } else {
+                e.into()
+            }
+        })?;
         inputs.push(InputModel {
             path: path.display().to_string(),
             triangles: summary.triangles,
