@@ -273,20 +273,16 @@ impl QuicTransport {
             .await
             .ok_or_else(|| QuicError::Stream("no hello".into()))?
             .map_err(|e| QuicError::Stream(e.to_string()))?;
-        let refuse = |reason: String| Handshake::Refused {
-            version: PROTOCOL_VERSION,
-            reason,
-        };
         let hello = match Handshake::decode(&frame) {
             Ok(Handshake::Hello(h)) => h,
             Ok(_) => return Err(QuicError::Stream("expected a hello".into())),
             Err(e) => {
-                let _ = self.send_handshake(&mut wr, &refuse(e.to_string())).await;
+                self.refuse(wr, e.to_string()).await;
                 return Err(QuicError::Handshake(e));
             }
         };
         if let Err(e) = check_cert_name(conn, &hello.node) {
-            let _ = self.send_handshake(&mut wr, &refuse(e.to_string())).await;
+            self.refuse(wr, e.to_string()).await;
             return Err(e);
         }
         let welcome = Handshake::Welcome(Hello {
@@ -297,6 +293,25 @@ impl QuicTransport {
         self.send_handshake(&mut wr, &welcome).await?;
         let _ = wr.into_inner().finish();
         Ok((hello.node, hello.role))
+    }
+
+    /// Tells the peer why it is refused, and waits (briefly) until it has
+    /// the answer, so that closing the connection does not discard it.
+    async fn refuse(
+        &self,
+        mut wr: FramedWrite<quinn::SendStream, LengthDelimitedCodec>,
+        reason: String,
+    ) {
+        let refusal = Handshake::Refused {
+            version: PROTOCOL_VERSION,
+            reason,
+        };
+        if self.send_handshake(&mut wr, &refusal).await.is_ok() {
+            let mut s = wr.into_inner();
+            if s.finish().is_ok() {
+                let _ = tokio::time::timeout(Duration::from_secs(2), s.stopped()).await;
+            }
+        }
     }
 
     async fn send_handshake(
