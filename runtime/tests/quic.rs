@@ -396,3 +396,67 @@ async fn relay_delay_shows_in_the_round_trip() {
     }
     guard(echo).await.unwrap();
 }
+
+#[tokio::test]
+async fn every_kind_crosses_a_lossy_capped_relay() {
+    let ca = ClusterCa::generate().unwrap();
+    let (a, ta) = node(&ca.issue(&name("node-a")).unwrap(), Role::Client).await;
+    let (b, tb) = node(&ca.issue(&name("node-b")).unwrap(), Role::Store).await;
+    // QUIC's retransmission and congestion control have to cope.
+    let shape = LinkShape {
+        latency: Duration::from_millis(2),
+        jitter: Duration::from_millis(1),
+        bandwidth_bps: Some(200_000_000),
+        loss: 0.03,
+    };
+    let relay = UdpRelay::start(loopback(), tb.local_addr().unwrap(), shape, shape)
+        .await
+        .unwrap();
+    ta.connect(name("node-b"), relay.local_addr());
+    guard(a.wait_for_peer(&name("node-b"))).await;
+    guard(b.wait_for_peer(&name("node-a"))).await;
+    guard(exchange_every_kind(&a, &b)).await;
+    ta.shutdown().await;
+    tb.shutdown().await;
+}
+
+#[tokio::test]
+async fn a_big_voxel_does_not_hold_back_a_control_message() {
+    use dray_protocol::{Blob, VoxelLoaded};
+    let ca = ClusterCa::generate().unwrap();
+    let (a, ta) = node(&ca.issue(&name("node-a")).unwrap(), Role::Store).await;
+    let (b, tb) = node(&ca.issue(&name("node-b")).unwrap(), Role::Client).await;
+    // 4 MB at 50 Mbit/s takes most of a second on the wire.
+    let shape = LinkShape {
+        bandwidth_bps: Some(50_000_000),
+        ..LinkShape::none()
+    };
+    let relay = UdpRelay::start(loopback(), tb.local_addr().unwrap(), shape, shape)
+        .await
+        .unwrap();
+    ta.connect(name("node-b"), relay.local_addr());
+    guard(a.wait_for_peer(&name("node-b"))).await;
+    let ma = a.mailbox(name("store"), 4).unwrap();
+    let mut mb = b.mailbox(name("loader"), 4).unwrap();
+    let voxel = Message::VoxelLoaded(VoxelLoaded {
+        id: 1,
+        data: Blob(vec![7u8; 4 << 20]),
+    });
+    let to = mb.address().clone();
+    let sender = tokio::spawn(async move {
+        ma.send(&to, voxel).await.unwrap();
+        ma.send(&to, Message::Ping(Ping { seq: 1 })).await.unwrap();
+        ma
+    });
+    let (_, first) = guard(next_message(&mut mb)).await;
+    assert_eq!(
+        first,
+        Message::Ping(Ping { seq: 1 }),
+        "the ping overtook the voxel"
+    );
+    let (_, second) = guard(next_message(&mut mb)).await;
+    assert!(matches!(second, Message::VoxelLoaded(v) if v.data.0.len() == 4 << 20));
+    guard(sender).await.unwrap();
+    ta.shutdown().await;
+    tb.shutdown().await;
+}
