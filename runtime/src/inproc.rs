@@ -2,7 +2,7 @@
 //! with the same encoding, limits and (optionally) shaping as the wire.
 
 use crate::bus::{Bus, BusError, Inner, PeerLink, SendError};
-use crate::shaping::{LinkShape, Shaper};
+use crate::shaping::{Lane, LinkShape, Shaper};
 use dray_protocol::{decode_envelope, encode_envelope, Envelope, Name, Role};
 use std::collections::{BTreeMap, HashMap};
 use std::hash::{Hash, Hasher};
@@ -21,7 +21,8 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 
 struct Pipe {
     shaper: Mutex<Shaper>,
-    tx: mpsc::Sender<(Instant, Envelope)>,
+    /// One ordered queue per lane (control, bulk).
+    tx: [mpsc::Sender<(Instant, Envelope)>; 2],
 }
 
 /// One direction between two in-process nodes.
@@ -48,10 +49,15 @@ impl InProcLink {
                 dst.deliver_local(env).await
             }
             Some(pipe) => {
-                let at = lock(&pipe.shaper).reliable(body.len());
+                let lane = if kind.is_bulk() {
+                    Lane::Bulk
+                } else {
+                    Lane::Control
+                };
+                let at = lock(&pipe.shaper).reliable(body.len(), lane);
                 trace!(kind = kind.name(), bytes = body.len(), "shaped send");
                 let env = decode_envelope(&body)?;
-                pipe.tx
+                pipe.tx[lane as usize]
                     .send((at, env))
                     .await
                     .map_err(|_| SendError::PeerUnavailable(self.dst_name.clone()))
@@ -59,15 +65,11 @@ impl InProcLink {
         }
     }
 
-    fn set_shape(&self, shape: LinkShape, seed: u64) {
-        let mut pipe = lock(&self.pipe);
-        if shape.is_none() {
-            *pipe = None;
-            return;
-        }
+    /// Starts the task that delivers one lane's messages at their times.
+    fn spawn_lane(&self, lane: &'static str) -> mpsc::Sender<(Instant, Envelope)> {
         let (tx, mut rx) = mpsc::channel::<(Instant, Envelope)>(PIPE_CAPACITY);
         let dst = self.dst.clone();
-        let span = tracing::debug_span!("inproc_link", to = %self.dst_name);
+        let span = tracing::debug_span!("inproc_link", to = %self.dst_name, lane);
         tokio::spawn(
             async move {
                 while let Some((at, env)) = rx.recv().await {
@@ -80,6 +82,16 @@ impl InProcLink {
             }
             .instrument(span),
         );
+        tx
+    }
+
+    fn set_shape(&self, shape: LinkShape, seed: u64) {
+        let mut pipe = lock(&self.pipe);
+        if shape.is_none() {
+            *pipe = None;
+            return;
+        }
+        let tx = [self.spawn_lane("control"), self.spawn_lane("bulk")];
         *pipe = Some(Arc::new(Pipe {
             shaper: Mutex::new(Shaper::new(shape, seed, Duration::ZERO)),
             tx,

@@ -130,13 +130,26 @@ pub enum Verdict {
     Drop,
 }
 
-/// The state of one shaped direction: when the link is free again, when the
-/// last delivery happens, the random stream.
+/// Which queue of a link a reliable message takes. QUIC carries control
+/// messages on one stream and each bulk message on its own, and schedules
+/// them fairly, so a small control message does not wait behind a large
+/// voxel; the in-process model gives the two classes separate ordered lanes
+/// on a shared bandwidth (control first, its bytes delay the bulk lane).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Lane {
+    /// Small messages, in order.
+    Control,
+    /// Large payloads (tile results, voxels), in order among themselves.
+    Bulk,
+}
+
+/// The state of one shaped direction: when each lane is free again, when
+/// its last delivery happens, the random stream.
 #[derive(Debug)]
 pub struct Shaper {
     shape: LinkShape,
-    free_at: Instant,
-    last_delivery: Instant,
+    free_at: [Instant; 2],
+    last_delivery: [Instant; 2],
     rng: Rng,
     queue_limit: Duration,
 }
@@ -149,8 +162,8 @@ impl Shaper {
         let now = Instant::now();
         Shaper {
             shape,
-            free_at: now,
-            last_delivery: now,
+            free_at: [now; 2],
+            last_delivery: [now; 2],
             rng: Rng::new(seed),
             queue_limit,
         }
@@ -169,21 +182,27 @@ impl Shaper {
         }
     }
 
-    /// A reliable, ordered message of `bytes` sent now: latency plus its
-    /// transmission after whatever is still queued, plus jitter; a "lost"
-    /// one is retransmitted one round trip later.
-    pub fn reliable(&mut self, bytes: usize) -> Instant {
+    /// A reliable message of `bytes` sent now on `lane`: its transmission
+    /// after whatever is still queued on that lane, plus latency and jitter;
+    /// a "lost" one is retransmitted one round trip later. Nothing overtakes
+    /// an earlier message of the same lane.
+    pub fn reliable(&mut self, bytes: usize, lane: Lane) -> Instant {
         let now = Instant::now();
+        let i = lane as usize;
         let tx = self.shape.transmission_time(bytes);
-        let start = self.free_at.max(now);
-        self.free_at = start + tx;
-        let mut at = self.free_at + self.shape.latency + self.jitter();
+        let start = self.free_at[i].max(now);
+        self.free_at[i] = start + tx;
+        if lane == Lane::Control {
+            // Control bytes use the bandwidth the bulk lane would have had.
+            self.free_at[1] = self.free_at[1].max(now) + tx;
+        }
+        let mut at = self.free_at[i] + self.shape.latency + self.jitter();
         if self.shape.loss > 0.0 && self.rng.unit() < self.shape.loss {
             at += 2 * self.shape.latency + tx;
-            self.free_at += tx;
+            self.free_at[i] += tx;
         }
-        at = at.max(self.last_delivery);
-        self.last_delivery = at;
+        at = at.max(self.last_delivery[i]);
+        self.last_delivery[i] = at;
         at
     }
 
@@ -194,13 +213,13 @@ impl Shaper {
         if self.shape.loss > 0.0 && self.rng.unit() < self.shape.loss {
             return Verdict::Drop;
         }
-        let start = self.free_at.max(now);
+        let start = self.free_at[0].max(now);
         if start > now + self.queue_limit {
             return Verdict::Drop;
         }
-        self.free_at = start + self.shape.transmission_time(bytes);
-        let at = (self.free_at + self.shape.latency + self.jitter()).max(self.last_delivery);
-        self.last_delivery = at;
+        self.free_at[0] = start + self.shape.transmission_time(bytes);
+        let at = (self.free_at[0] + self.shape.latency + self.jitter()).max(self.last_delivery[0]);
+        self.last_delivery[0] = at;
         Verdict::At(at)
     }
 }
@@ -218,8 +237,23 @@ mod tests {
         };
         let mut s = Shaper::new(shape, 1, Duration::ZERO);
         let t0 = Instant::now();
-        assert_eq!(s.reliable(1000), t0 + Duration::from_micros(11_000));
-        assert_eq!(s.reliable(1000), t0 + Duration::from_micros(12_000));
+        assert_eq!(
+            s.reliable(1000, Lane::Bulk),
+            t0 + Duration::from_micros(11_000)
+        );
+        assert_eq!(
+            s.reliable(1000, Lane::Bulk),
+            t0 + Duration::from_micros(12_000)
+        );
+        // A control message does not wait for the bulk lane, but delays it.
+        assert_eq!(
+            s.reliable(500, Lane::Control),
+            t0 + Duration::from_micros(10_500)
+        );
+        assert_eq!(
+            s.reliable(1000, Lane::Bulk),
+            t0 + Duration::from_micros(13_500)
+        );
     }
 
     #[tokio::test(start_paused = true)]

@@ -229,3 +229,30 @@ async fn jitter_never_reorders_messages() {
         assert_eq!(next_message(&mut rx).await.1, Message::Ping(Ping { seq }));
     }
 }
+
+#[tokio::test(start_paused = true)]
+async fn a_big_voxel_does_not_hold_back_a_control_message() {
+    let (net, a, b) = pair();
+    net.set_shape(
+        a.node(),
+        b.node(),
+        LinkShape {
+            latency: Duration::from_millis(1),
+            bandwidth_bps: Some(10_000_000),
+            ..LinkShape::none()
+        },
+    )
+    .unwrap();
+    let tx = a.mailbox(name("store"), 4).unwrap();
+    let mut rx = b.mailbox(name("loader"), 4).unwrap();
+    let voxel = one_of_each(1 << 20).swap_remove(4);
+    tx.send(rx.address(), voxel.clone()).await.unwrap();
+    tx.send(rx.address(), Message::Ping(Ping { seq: 1 }))
+        .await
+        .unwrap();
+    assert_eq!(
+        next_message(&mut rx).await.1,
+        Message::Ping(Ping { seq: 1 })
+    );
+    assert_eq!(next_message(&mut rx).await.1, voxel);
+}
