@@ -175,6 +175,7 @@ fn capped(bps: u64) -> LinkShape {
 }
 
 fn main() {
+    dray_runtime::logging::init("warn");
     let quick = std::env::var_os("DRAY_BENCH_QUICK").is_some();
     let (pings, voxels, per_sender) = if quick {
         (200, 40, 200)
@@ -238,6 +239,13 @@ fn main() {
             let a = throughput(&ips, n, "cap").await;
             let b = throughput(&qs, n, "cap").await;
             let cap_m = cap as f64 / 1e6;
+            if let Some(r) = &qs._relay {
+                let st = r.stats();
+                eprintln!(
+                    "  relay at {label}: {} datagrams forwarded, {} dropped at the full queue",
+                    st.forwarded, st.overflowed
+                );
+            }
             println!(
                 "{:<44} {:>6.0} ({:>3.0}%) {:>6.0} ({:>3.0}%)",
                 format!("256 KB payloads capped at {label}, Mb/s"),

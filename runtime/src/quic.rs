@@ -93,6 +93,21 @@ pub enum QuicError {
     Timeout,
 }
 
+/// Socket buffer asked for, so a burst of datagrams is not lost in the
+/// kernel while the endpoint is busy (capped by `net.core.rmem_max`).
+const SOCKET_BUFFER: usize = 4 << 20;
+
+/// Binds the endpoint's UDP socket with large buffers.
+fn bind_udp(addr: SocketAddr) -> std::io::Result<std::net::UdpSocket> {
+    use socket2::{Domain, Protocol, Socket, Type};
+    let s = Socket::new(Domain::for_address(addr), Type::DGRAM, Some(Protocol::UDP))?;
+    // Best effort: a smaller buffer still works, it only drops sooner.
+    let _ = s.set_recv_buffer_size(SOCKET_BUFFER);
+    let _ = s.set_send_buffer_size(SOCKET_BUFFER);
+    s.bind(&addr.into())?;
+    Ok(s.into())
+}
+
 fn codec(max: usize) -> LengthDelimitedCodec {
     LengthDelimitedCodec::builder()
         .length_field_type::<u32>()
@@ -185,7 +200,13 @@ impl QuicTransport {
             .map_err(|e| QuicError::Crypto(e.to_string()))?;
         let mut client = quinn::ClientConfig::new(Arc::new(client_crypto));
         client.transport_config(transport);
-        let mut endpoint = Endpoint::server(server, listen)?;
+        let socket = bind_udp(listen)?;
+        let mut endpoint = Endpoint::new(
+            quinn::EndpointConfig::default(),
+            Some(server),
+            socket,
+            Arc::new(quinn::TokioRuntime),
+        )?;
         endpoint.set_default_client_config(client);
         let (shutdown, _) = watch::channel(false);
         let this = Arc::new(QuicTransport {
@@ -520,7 +541,13 @@ async fn read_stream(
             while let Some(frame) = rd.next().await {
                 let r = match frame {
                     Ok(body) => deliver(&bus, &local, &peer, body, false).await,
-                    Err(e) => Err(e.to_string()),
+                    // The codec reports a frame over the limit as invalid
+                    // data; anything else is the stream or connection ending.
+                    Err(e) if e.kind() == std::io::ErrorKind::InvalidData => Err(e.to_string()),
+                    Err(e) => {
+                        debug!(error = %e, "control stream ended");
+                        break;
+                    }
                 };
                 if let Err(e) = r {
                     out = Err(Bad::Connection(e));

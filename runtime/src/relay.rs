@@ -9,15 +9,32 @@
 use crate::shaping::{LinkShape, Shaper, Verdict};
 use std::collections::HashMap;
 use std::net::SocketAddr;
+use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::net::UdpSocket;
-use tokio::sync::{mpsc, watch, Mutex};
+use tokio::sync::{mpsc, watch};
 use tokio::time::Instant;
 use tracing::{debug, info_span, trace, Instrument};
 
 /// Largest datagram relayed.
 const MAX_DATAGRAM: usize = 65_535;
+/// Socket buffer the relay asks for, so a burst is not lost in the kernel
+/// while the relay is busy (the kernel caps it at `net.core.rmem_max`).
+const SOCKET_BUFFER: usize = 4 << 20;
+
+/// Binds a UDP socket with large buffers.
+fn bind_udp(addr: SocketAddr) -> std::io::Result<UdpSocket> {
+    use socket2::{Domain, Protocol, Socket, Type};
+    let s = Socket::new(Domain::for_address(addr), Type::DGRAM, Some(Protocol::UDP))?;
+    // Best effort: a smaller buffer still works, it only drops sooner.
+    let _ = s.set_recv_buffer_size(SOCKET_BUFFER);
+    let _ = s.set_send_buffer_size(SOCKET_BUFFER);
+    s.set_nonblocking(true)?;
+    s.bind(&addr.into())?;
+    UdpSocket::from_std(s.into())
+}
+
 /// Datagrams waiting per direction before more are dropped.
 const QUEUE_DATAGRAMS: usize = 65_536;
 
@@ -27,10 +44,29 @@ fn queue_limit(shape: &LinkShape) -> Duration {
     (2 * shape.latency).max(Duration::from_millis(50))
 }
 
+/// Datagram counts of a relay, both directions together.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct RelayStats {
+    /// Datagrams sent on.
+    pub forwarded: u64,
+    /// Datagrams dropped by the loss probability.
+    pub lost: u64,
+    /// Datagrams dropped because the queue was full.
+    pub overflowed: u64,
+}
+
+#[derive(Default)]
+struct Counters {
+    forwarded: AtomicU64,
+    lost: AtomicU64,
+    overflowed: AtomicU64,
+}
+
 /// A running relay. Dropping it stops it.
 pub struct UdpRelay {
     local: SocketAddr,
     stop: watch::Sender<bool>,
+    counters: Arc<Counters>,
 }
 
 impl UdpRelay {
@@ -42,12 +78,35 @@ impl UdpRelay {
         to_upstream: LinkShape,
         to_client: LinkShape,
     ) -> std::io::Result<UdpRelay> {
-        let front = Arc::new(UdpSocket::bind(listen).await?);
+        let front = Arc::new(bind_udp(listen)?);
         let local = front.local_addr()?;
         let (stop, stop_rx) = watch::channel(false);
+        let counters = Arc::new(Counters::default());
         let span = info_span!("udp_relay", %local, %upstream);
-        tokio::spawn(front_loop(front, upstream, to_upstream, to_client, stop_rx).instrument(span));
-        Ok(UdpRelay { local, stop })
+        tokio::spawn(
+            front_loop(
+                front,
+                upstream,
+                [to_upstream, to_client],
+                counters.clone(),
+                stop_rx,
+            )
+            .instrument(span),
+        );
+        Ok(UdpRelay {
+            local,
+            stop,
+            counters,
+        })
+    }
+
+    /// What the relay did so far.
+    pub fn stats(&self) -> RelayStats {
+        RelayStats {
+            forwarded: self.counters.forwarded.load(Relaxed),
+            lost: self.counters.lost.load(Relaxed),
+            overflowed: self.counters.overflowed.load(Relaxed),
+        }
     }
 
     /// Where clients send to.
@@ -67,6 +126,7 @@ impl Drop for UdpRelay {
 struct Direction {
     shaper: std::sync::Mutex<Shaper>,
     tx: mpsc::Sender<(Instant, Vec<u8>)>,
+    counters: Arc<Counters>,
 }
 
 impl Direction {
@@ -75,6 +135,7 @@ impl Direction {
         seed: u64,
         sock: Arc<UdpSocket>,
         to: Option<SocketAddr>,
+        counters: Arc<Counters>,
         mut stop: watch::Receiver<bool>,
     ) -> Direction {
         let (tx, mut rx) = mpsc::channel::<(Instant, Vec<u8>)>(QUEUE_DATAGRAMS);
@@ -86,7 +147,9 @@ impl Direction {
                         _ = stop.changed() => None,
                     };
                     let Some((at, pkt)) = next else { break };
-                    tokio::time::sleep_until(at).await;
+                    if at > Instant::now() {
+                        tokio::time::sleep_until(at).await;
+                    }
                     let r = match to {
                         Some(addr) => sock.send_to(&pkt, addr).await,
                         None => sock.send(&pkt).await,
@@ -101,6 +164,7 @@ impl Direction {
         Direction {
             shaper: std::sync::Mutex::new(Shaper::new(shape, seed, queue_limit(&shape))),
             tx,
+            counters,
         }
     }
 
@@ -113,10 +177,17 @@ impl Direction {
         match verdict {
             Verdict::At(at) => {
                 if self.tx.try_send((at, pkt.to_vec())).is_err() {
-                    trace!("relay queue full; datagram dropped");
+                    self.counters.overflowed.fetch_add(1, Relaxed);
+                } else {
+                    self.counters.forwarded.fetch_add(1, Relaxed);
                 }
             }
-            Verdict::Drop => trace!(bytes = pkt.len(), "datagram dropped"),
+            Verdict::Drop => {
+                self.counters.lost.fetch_add(1, Relaxed);
+            }
+            Verdict::Overflow => {
+                self.counters.overflowed.fetch_add(1, Relaxed);
+            }
         }
     }
 }
@@ -124,11 +195,12 @@ impl Direction {
 async fn front_loop(
     front: Arc<UdpSocket>,
     upstream: SocketAddr,
-    to_upstream: LinkShape,
-    to_client: LinkShape,
+    [to_upstream, to_client]: [LinkShape; 2],
+    counters: Arc<Counters>,
     mut stop: watch::Receiver<bool>,
 ) {
-    let sessions: Mutex<HashMap<SocketAddr, Arc<Direction>>> = Mutex::new(HashMap::new());
+    // Sessions live as long as the relay (one per client address).
+    let mut sessions: HashMap<SocketAddr, Arc<Direction>> = HashMap::new();
     let mut buf = vec![0u8; MAX_DATAGRAM];
     let mut seed = 1u64;
     loop {
@@ -143,8 +215,7 @@ async fn front_loop(
                 continue;
             }
         };
-        let mut map = sessions.lock().await;
-        let dir = match map.get(&client) {
+        let dir = match sessions.get(&client) {
             Some(d) => d.clone(),
             None => {
                 let Ok(back) = open_session(upstream).await else {
@@ -156,6 +227,7 @@ async fn front_loop(
                     seed,
                     back.clone(),
                     None,
+                    counters.clone(),
                     stop.clone(),
                 ));
                 let down = Direction::new(
@@ -163,15 +235,15 @@ async fn front_loop(
                     seed + 1,
                     front.clone(),
                     Some(client),
+                    counters.clone(),
                     stop.clone(),
                 );
                 tokio::spawn(back_loop(back, down, stop.clone()).in_current_span());
                 debug!(%client, "relay session opened");
-                map.insert(client, up.clone());
+                sessions.insert(client, up.clone());
                 up
             }
         };
-        drop(map);
         dir.push(&buf[..n]);
     }
 }
@@ -182,7 +254,7 @@ async fn open_session(upstream: SocketAddr) -> std::io::Result<Arc<UdpSocket>> {
     } else {
         SocketAddr::from((std::net::Ipv6Addr::LOCALHOST, 0))
     };
-    let s = UdpSocket::bind(bind).await?;
+    let s = bind_udp(bind)?;
     s.connect(upstream).await?;
     Ok(Arc::new(s))
 }

@@ -126,8 +126,10 @@ impl Rng {
 pub enum Verdict {
     /// Deliver at this instant.
     At(Instant),
-    /// Drop it (only when the caller allows drops).
+    /// Drop it: lost by the loss probability.
     Drop,
+    /// Drop it: the queue in front of the capped link is full.
+    Overflow,
 }
 
 /// Which queue of a link a reliable message takes. QUIC carries control
@@ -215,7 +217,7 @@ impl Shaper {
         }
         let start = self.free_at[0].max(now);
         if start > now + self.queue_limit {
-            return Verdict::Drop;
+            return Verdict::Overflow;
         }
         self.free_at[0] = start + self.shape.transmission_time(bytes);
         let at = (self.free_at[0] + self.shape.latency + self.jitter()).max(self.last_delivery[0]);
