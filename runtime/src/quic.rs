@@ -378,6 +378,12 @@ impl QuicTransport {
                 expected: peer.to_string(),
                 got: w.node.to_string(),
             }),
+            Handshake::Refused { version, .. } if version != PROTOCOL_VERSION => {
+                Err(QuicError::Handshake(ProtocolError::VersionMismatch {
+                    ours: PROTOCOL_VERSION,
+                    theirs: version,
+                }))
+            }
             Handshake::Refused { reason, .. } => Err(QuicError::Refused(reason)),
             Handshake::Hello(_) => Err(QuicError::Stream("expected a welcome".into())),
         }

@@ -4,49 +4,24 @@
 //! in-process transport uses it per message on tokio's clock (paused in
 //! tests), the UDP relay per datagram.
 
-use serde::{Deserialize, Serialize};
 use std::time::Duration;
 use tokio::time::Instant;
 
 /// How one direction of a link behaves.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct LinkShape {
     /// Added one-way delay.
-    #[serde(default, with = "millis")]
     pub latency: Duration,
     /// Extra delay drawn uniformly from `[0, jitter]` per message or datagram
     /// (order is kept: nothing overtakes what was sent before it).
-    #[serde(default, with = "millis")]
     pub jitter: Duration,
     /// Bandwidth cap in bits per second; `None`: unlimited.
-    #[serde(default)]
     pub bandwidth_bps: Option<u64>,
     /// Loss probability in `[0, 1)`. The relay drops datagrams; the
     /// in-process transport, which is reliable like a QUIC stream, delays a
     /// "lost" message by one more round trip and transmission, as a
     /// retransmission would.
-    #[serde(default)]
     pub loss: f64,
-}
-
-mod millis {
-    use serde::{Deserialize, Deserializer, Serializer};
-    use std::time::Duration;
-
-    pub fn serialize<S: Serializer>(d: &Duration, s: S) -> Result<S::Ok, S::Error> {
-        s.serialize_f64(d.as_secs_f64() * 1000.0)
-    }
-
-    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Duration, D::Error> {
-        let ms = f64::deserialize(d)?;
-        if !(ms.is_finite() && (0.0..=3_600_000.0).contains(&ms)) {
-            return Err(serde::de::Error::custom(format_args!(
-                "{ms} ms is not a duration between 0 and one hour"
-            )));
-        }
-        Ok(Duration::from_secs_f64(ms / 1000.0))
-    }
 }
 
 /// Why a shape is unusable.
