@@ -204,3 +204,120 @@ proptest! {
         }
     }
 }
+
+/// The largest value of every kind still fits its limit: longest names,
+/// largest numbers, fullest lists.
+#[test]
+fn maximal_messages_fit_their_limits() {
+    let long = |c: char| Name::new(&c.to_string().repeat(MAX_NAME_LEN)).unwrap();
+    let tile = TileRect {
+        x: u32::MAX - MAX_TILE_SIDE,
+        y: u32::MAX - MAX_TILE_SIDE,
+        w: MAX_TILE_SIDE,
+        h: MAX_TILE_SIDE,
+    };
+    let n = tile.area();
+    let camera = Camera {
+        eye: [f32::MAX; 3],
+        look: [f32::MIN; 3],
+        up: [1.0; 3],
+        fov_y_deg: 179.0,
+    };
+    let text = "é".repeat(MAX_TEXT_LEN / 2);
+    let stats = TileStats {
+        rays: u64::MAX,
+        time_us: u64::MAX,
+        voxels_touched: u32::MAX,
+        misses: u32::MAX,
+        bytes_fetched: u64::MAX,
+    };
+    let client = ClientFrameStats {
+        node: long('c'),
+        tiles: u32::MAX,
+        rays: u64::MAX,
+        misses: u64::MAX,
+        bytes_fetched: u64::MAX,
+    };
+    let msgs = vec![
+        Message::RequestWork(RequestWork { slots: u16::MAX }),
+        Message::AssignTile(AssignTile {
+            frame: u64::MAX,
+            tile: TileRect {
+                x: MAX_IMAGE_SIDE - MAX_TILE_SIDE,
+                y: MAX_IMAGE_SIDE - MAX_TILE_SIDE,
+                w: MAX_TILE_SIDE,
+                h: MAX_TILE_SIDE,
+            },
+            camera,
+            width: MAX_IMAGE_SIDE,
+            height: MAX_IMAGE_SIDE,
+            settings: RenderSettings {
+                shadows: true,
+                reflection_depth: MAX_REFLECTION_DEPTH,
+                light: Light {
+                    position: [f32::MAX; 3],
+                    intensity: [f32::MAX; 3],
+                },
+                want_depth: true,
+                want_prim_ids: true,
+            },
+        }),
+        Message::TileDone(TileDone {
+            frame: u64::MAX,
+            tile,
+            pixels: Blob(vec![255; n * 4]),
+            depth: Some(PackedF32(vec![f32::INFINITY; n])),
+            prim_ids: Some(PackedU32(vec![u32::MAX; n])),
+            stats,
+        }),
+        Message::FetchVoxel(FetchVoxel { id: u32::MAX }),
+        Message::VoxelLoaded(VoxelLoaded {
+            id: u32::MAX,
+            data: Blob(vec![1; MAX_VOXEL_BYTES]),
+        }),
+        Message::VoxelError(VoxelError {
+            id: u32::MAX,
+            message: text.clone(),
+        }),
+        Message::CameraUpdate(CameraUpdate {
+            seq: u64::MAX,
+            camera,
+        }),
+        Message::FrameDone(FrameDone {
+            frame: u64::MAX,
+            stats: FrameStats {
+                tiles: u32::MAX,
+                reassigned: u32::MAX,
+                rays: u64::MAX,
+                time_us: u64::MAX,
+                misses: u64::MAX,
+                bytes_fetched: u64::MAX,
+                clients: BoundedVec::new(vec![client; MAX_STATS_CLIENTS]).unwrap(),
+            },
+        }),
+        Message::PrefetchHint(PrefetchHint {
+            frame: u64::MAX,
+            voxels: PackedU32(vec![u32::MAX; MAX_PREFETCH_IDS]),
+        }),
+        Message::Ping(Ping { seq: u64::MAX }),
+        Message::Pong(Ping { seq: u64::MAX }),
+        Message::Shutdown(Shutdown { reason: text }),
+    ];
+    for msg in msgs {
+        let kind = msg.kind();
+        let e = Envelope {
+            msg,
+            from: Address::new(long('a'), long('b')),
+            to: Address::new(long('d'), long('e')),
+        };
+        let bytes = encode_envelope(&e).unwrap_or_else(|err| panic!("{kind:?}: {err}"));
+        assert!(bytes.len() <= kind.max_wire_size());
+        assert_eq!(decode_envelope(&bytes).unwrap(), e);
+    }
+    // One more item than allowed is refused by the sender.
+    let too_many = Message::PrefetchHint(PrefetchHint {
+        frame: 0,
+        voxels: PackedU32(vec![0; MAX_PREFETCH_IDS + 1]),
+    });
+    assert!(encode_envelope(&env(too_many)).is_err());
+}
