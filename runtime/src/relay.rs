@@ -9,7 +9,7 @@
 use crate::shaping::{LinkShape, Shaper, Verdict};
 use std::collections::HashMap;
 use std::net::SocketAddr;
-use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::Relaxed};
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::net::UdpSocket;
@@ -60,6 +60,8 @@ struct Counters {
     forwarded: AtomicU64,
     lost: AtomicU64,
     overflowed: AtomicU64,
+    /// While set, every datagram is dropped (counted as lost).
+    partitioned: AtomicBool,
 }
 
 /// A running relay. Dropping it stops it.
@@ -98,6 +100,13 @@ impl UdpRelay {
             stop,
             counters,
         })
+    }
+
+    /// Cuts (`true`) or heals (`false`) the link: while cut, every datagram
+    /// in both directions is dropped, as by a network partition; QUIC then
+    /// sees its peer vanish without a word.
+    pub fn partition(&self, cut: bool) {
+        self.counters.partitioned.store(cut, Relaxed);
     }
 
     /// What the relay did so far.
@@ -169,6 +178,10 @@ impl Direction {
     }
 
     fn push(&self, pkt: &[u8]) {
+        if self.counters.partitioned.load(Relaxed) {
+            self.counters.lost.fetch_add(1, Relaxed);
+            return;
+        }
         let verdict = self
             .shaper
             .lock()

@@ -460,3 +460,49 @@ async fn a_big_voxel_does_not_hold_back_a_control_message() {
     ta.shutdown().await;
     tb.shutdown().await;
 }
+
+#[tokio::test]
+async fn a_silent_partition_is_detected_and_healed() {
+    let ca = ClusterCa::generate().unwrap();
+    let (a, ta) = node(&ca.issue(&name("node-a")).unwrap(), Role::Client).await;
+    let (b, tb) = node(&ca.issue(&name("node-b")).unwrap(), Role::Scheduler).await;
+    let relay = UdpRelay::start(
+        loopback(),
+        tb.local_addr().unwrap(),
+        LinkShape::none(),
+        LinkShape::none(),
+    )
+    .await
+    .unwrap();
+    ta.connect(name("node-b"), relay.local_addr());
+    guard(a.wait_for_peer(&name("node-b"))).await;
+    guard(b.wait_for_peer(&name("node-a"))).await;
+    let mut ma = a.mailbox(name("client"), 16).unwrap();
+    let mut mb = b.mailbox(name("sched"), 16).unwrap();
+
+    // No close frame gets through: both sides find out by the idle timeout.
+    relay.partition(true);
+    let down = |d: Option<Delivery>, who: &str| {
+        assert!(
+            matches!(d, Some(Delivery::PeerDown { ref node, .. }) if *node == name(who)),
+            "{d:?}"
+        )
+    };
+    down(guard(ma.recv()).await, "node-b");
+    down(guard(mb.recv()).await, "node-a");
+    assert!(relay.stats().lost > 0);
+
+    // Healed, the dialer gets back in by itself.
+    relay.partition(false);
+    assert_eq!(
+        guard(ma.recv()).await,
+        Some(Delivery::PeerUp {
+            node: name("node-b"),
+            role: Role::Scheduler
+        })
+    );
+    guard(b.wait_for_peer(&name("node-a"))).await;
+    ping_pong(&a, &b, 4).await;
+    ta.shutdown().await;
+    tb.shutdown().await;
+}
