@@ -239,7 +239,7 @@ impl QuicTransport {
 
     /// Closes every connection and stops accepting and redialing.
     pub async fn shutdown(&self) {
-        let _ = self.shutdown.send(true);
+        self.shutdown.send_replace(true);
         self.endpoint
             .close(VarInt::from_u32(CODE_SHUTDOWN), b"shutdown");
         self.endpoint.wait_idle().await;

@@ -126,7 +126,7 @@ impl UdpRelay {
 
 impl Drop for UdpRelay {
     fn drop(&mut self) {
-        let _ = self.stop.send(true);
+        self.stop.send_replace(true);
     }
 }
 
