@@ -1,4 +1,538 @@
 //! dray-config: the one cluster config (TOML) with validation.
 //!
-//! The cluster config arrives with the message bus issue; the preprocessing
-//! parameters live with the preprocessor in `dray-scene`.
+//! One file describes a whole cluster: the scene database, the render
+//! settings, where the scheduler, the display and each store listen, how many
+//! clients run and how (threads, cache budget, miss mode), link shaping per
+//! link class, and the certificate directory. [`Config::load`] parses and
+//! validates it; every error names the key and the problem. Relative paths
+//! are taken relative to the config file's directory.
+//!
+//! Node names are fixed by role: `scheduler`, `display`, `store-I`,
+//! `client-I` (I from 0); [`Config::node_names`] lists them, e.g. for
+//! issuing certificates.
+//!
+//! The preprocessing parameters live with the preprocessor in `dray-scene`.
+
+use serde::Deserialize;
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+/// Largest tile side (the wire limit of a tile result).
+pub const MAX_TILE_SIZE: u32 = 256;
+/// Largest image side.
+pub const MAX_IMAGE_SIZE: u32 = 16384;
+
+/// Why a config is unusable.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    /// The file could not be read.
+    #[error("{path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// What happened.
+        source: std::io::Error,
+    },
+    /// Not valid TOML, an unknown field, or a value of the wrong type.
+    #[error("{path}: {message}")]
+    Parse {
+        /// The file.
+        path: PathBuf,
+        /// toml's message, with the line and the key.
+        message: String,
+    },
+    /// A value is out of range or inconsistent.
+    #[error("{key}: {problem}")]
+    Invalid {
+        /// The dotted key, e.g. `clients.cache_mb` or `stores[1].address`.
+        key: String,
+        /// What is wrong.
+        problem: String,
+    },
+}
+
+fn invalid(key: impl Into<String>, problem: impl Into<String>) -> ConfigError {
+    ConfigError::Invalid {
+        key: key.into(),
+        problem: problem.into(),
+    }
+}
+
+/// The whole cluster.
+#[derive(Clone, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct Config {
+    /// The voxel database.
+    pub scene: SceneConfig,
+    /// What to render.
+    pub render: RenderConfig,
+    /// The scheduler node.
+    pub scheduler: NodeConfig,
+    /// The display node.
+    pub display: DisplayConfig,
+    /// The voxel stores (at least one); each serves a shard.
+    pub stores: Vec<NodeConfig>,
+    /// The render clients.
+    pub clients: ClientsConfig,
+    /// Link shaping per link class.
+    #[serde(default)]
+    pub links: LinksConfig,
+    /// The cluster certificates.
+    pub certs: CertsConfig,
+}
+
+/// The scene.
+#[derive(Clone, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct SceneConfig {
+    /// Directory of the voxel database made by `dray preprocess`.
+    pub database: PathBuf,
+}
+
+/// A pinhole camera (DESIGN.md conventions).
+#[derive(Clone, Copy, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct CameraConfig {
+    /// Eye position.
+    pub eye: [f32; 3],
+    /// Point looked at.
+    pub look: [f32; 3],
+    /// Up hint.
+    #[serde(default = "default_up")]
+    pub up: [f32; 3],
+    /// Vertical field of view, degrees.
+    #[serde(default = "default_fov")]
+    pub fov_y_deg: f32,
+}
+
+fn default_up() -> [f32; 3] {
+    [0.0, 1.0, 0.0]
+}
+fn default_fov() -> f32 {
+    45.0
+}
+
+/// A point light.
+#[derive(Clone, Copy, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct LightConfig {
+    /// Position.
+    pub position: [f32; 3],
+    /// Linear RGB intensity.
+    #[serde(default = "default_intensity")]
+    pub intensity: [f32; 3],
+}
+
+fn default_intensity() -> [f32; 3] {
+    [1.0, 1.0, 1.0]
+}
+
+/// What to render.
+#[derive(Clone, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct RenderConfig {
+    /// Image width, pixels.
+    pub width: u32,
+    /// Image height, pixels.
+    pub height: u32,
+    /// Tile side, pixels.
+    #[serde(default = "default_tile")]
+    pub tile_size: u32,
+    /// Trace shadow rays.
+    #[serde(default)]
+    pub shadows: bool,
+    /// Reflection recursion depth.
+    #[serde(default)]
+    pub reflection_depth: u8,
+    /// The first camera.
+    pub camera: CameraConfig,
+    /// The light.
+    pub light: LightConfig,
+    /// A camera path to follow (one camera per frame); none: the display's
+    /// user moves the camera.
+    #[serde(default)]
+    pub camera_path: Option<PathBuf>,
+}
+
+fn default_tile() -> u32 {
+    32
+}
+
+/// A node that others dial.
+#[derive(Clone, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct NodeConfig {
+    /// `host:port` it listens on (QUIC, UDP).
+    pub address: String,
+}
+
+/// The display node.
+#[derive(Clone, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct DisplayConfig {
+    /// `host:port` it listens on (QUIC, UDP).
+    pub address: String,
+    /// `host:port` of the live web viewer (HTTP); none: no viewer.
+    #[serde(default)]
+    pub web: Option<String>,
+    /// Directory for PNG frames and the metrics CSV; none: not written.
+    #[serde(default)]
+    pub output: Option<PathBuf>,
+}
+
+/// What a client does when a packet needs a voxel it does not have.
+#[derive(Clone, Copy, Debug, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "lowercase")]
+pub enum MissMode {
+    /// Suspend the packet, fetch asynchronously, go on with other packets.
+    Suspend,
+    /// Stall the render thread until the voxel arrives (the baseline).
+    Block,
+}
+
+/// The render clients.
+#[derive(Clone, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct ClientsConfig {
+    /// How many clients `dray cluster` starts.
+    pub count: u32,
+    /// Render threads per client.
+    pub threads: u32,
+    /// Voxel cache budget per client, MB (10^6 bytes).
+    pub cache_mb: u64,
+    /// Miss mode.
+    #[serde(default = "default_miss")]
+    pub miss_mode: MissMode,
+    /// Most voxel fetches in flight per client.
+    #[serde(default = "default_inflight")]
+    pub max_inflight_fetches: u32,
+    /// Most tiles assigned to one client at once.
+    #[serde(default = "default_tiles_in_flight")]
+    pub tiles_in_flight: u32,
+    /// Host the clients bind (they dial out; the port is picked).
+    #[serde(default = "default_bind")]
+    pub bind: String,
+}
+
+fn default_miss() -> MissMode {
+    MissMode::Suspend
+}
+fn default_inflight() -> u32 {
+    64
+}
+fn default_tiles_in_flight() -> u32 {
+    4
+}
+fn default_bind() -> String {
+    "127.0.0.1".into()
+}
+
+/// Shaping of one link class, each direction.
+#[derive(Clone, Copy, Debug, Default, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct LinkConfig {
+    /// One-way latency, ms.
+    #[serde(default)]
+    pub latency_ms: f64,
+    /// Uniform jitter added to the latency, ms.
+    #[serde(default)]
+    pub jitter_ms: f64,
+    /// Bandwidth cap, Mbit/s; none: unlimited.
+    #[serde(default)]
+    pub bandwidth_mbps: Option<f64>,
+    /// Loss probability in [0, 1).
+    #[serde(default)]
+    pub loss: f64,
+}
+
+impl LinkConfig {
+    /// The latency as a duration.
+    pub fn latency(&self) -> Duration {
+        Duration::from_secs_f64(self.latency_ms / 1000.0)
+    }
+
+    /// The jitter as a duration.
+    pub fn jitter(&self) -> Duration {
+        Duration::from_secs_f64(self.jitter_ms / 1000.0)
+    }
+
+    /// The cap in bits per second.
+    pub fn bandwidth_bps(&self) -> Option<u64> {
+        self.bandwidth_mbps.map(|m| (m * 1e6).round() as u64)
+    }
+
+    /// Whether the link is shaped at all.
+    pub fn is_shaped(&self) -> bool {
+        *self != LinkConfig::default()
+    }
+
+    fn validate(&self, key: &str) -> Result<(), ConfigError> {
+        let ms = |v: f64, k: &str| {
+            if v.is_finite() && (0.0..=60_000.0).contains(&v) {
+                Ok(())
+            } else {
+                Err(invalid(
+                    format!("{key}.{k}"),
+                    format!("{v} is not between 0 and 60000 ms"),
+                ))
+            }
+        };
+        ms(self.latency_ms, "latency_ms")?;
+        ms(self.jitter_ms, "jitter_ms")?;
+        if let Some(b) = self.bandwidth_mbps {
+            if !(b.is_finite() && b > 0.0 && b <= 1e6) {
+                return Err(invalid(
+                    format!("{key}.bandwidth_mbps"),
+                    format!("{b} is not a bandwidth above 0 and at most 1000000 Mbit/s"),
+                ));
+            }
+        }
+        if !(self.loss.is_finite() && (0.0..1.0).contains(&self.loss)) {
+            return Err(invalid(
+                format!("{key}.loss"),
+                format!("{} is not a probability in [0, 1)", self.loss),
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// Link shaping per link class.
+#[derive(Clone, Copy, Debug, Default, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct LinksConfig {
+    /// Between clients and stores (voxel traffic).
+    #[serde(default)]
+    pub client_store: LinkConfig,
+    /// Between clients and the scheduler (tiles).
+    #[serde(default)]
+    pub client_scheduler: LinkConfig,
+    /// Between the display and the scheduler.
+    #[serde(default)]
+    pub display: LinkConfig,
+}
+
+/// The cluster certificates.
+#[derive(Clone, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct CertsConfig {
+    /// Directory made by `dray certs init`.
+    pub dir: PathBuf,
+}
+
+fn parse_addr(key: &str, s: &str) -> Result<SocketAddr, ConfigError> {
+    s.parse::<SocketAddr>().map_err(|_| {
+        invalid(
+            key,
+            format!("{s:?} is not an address of the form IP:PORT (e.g. 127.0.0.1:7000)"),
+        )
+    })
+}
+
+fn check_camera(key: &str, c: &CameraConfig) -> Result<(), ConfigError> {
+    for (name, v) in [("eye", c.eye), ("look", c.look), ("up", c.up)] {
+        if !v.iter().all(|x| x.is_finite()) {
+            return Err(invalid(
+                format!("{key}.{name}"),
+                "holds a non-finite number",
+            ));
+        }
+    }
+    if !(c.fov_y_deg > 0.0 && c.fov_y_deg < 180.0) {
+        return Err(invalid(
+            format!("{key}.fov_y_deg"),
+            format!("{} is not in (0, 180) degrees", c.fov_y_deg),
+        ));
+    }
+    if c.eye == c.look {
+        return Err(invalid(format!("{key}.look"), "equals the eye position"));
+    }
+    Ok(())
+}
+
+impl Config {
+    /// Reads, parses and validates a config file; relative paths in it are
+    /// made relative to the file's directory.
+    pub fn load(path: &Path) -> Result<Config, ConfigError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Io {
+            path: path.to_owned(),
+            source,
+        })?;
+        let mut cfg = Config::parse(&text).map_err(|e| match e {
+            ConfigError::Parse { message, .. } => ConfigError::Parse {
+                path: path.to_owned(),
+                message,
+            },
+            other => other,
+        })?;
+        let base = path.parent().unwrap_or(Path::new("."));
+        let rel = |p: &mut PathBuf| {
+            if p.is_relative() {
+                *p = base.join(&*p);
+            }
+        };
+        rel(&mut cfg.scene.database);
+        rel(&mut cfg.certs.dir);
+        if let Some(p) = cfg.render.camera_path.as_mut() {
+            rel(p);
+        }
+        if let Some(p) = cfg.display.output.as_mut() {
+            rel(p);
+        }
+        Ok(cfg)
+    }
+
+    /// Parses and validates config text (paths stay as written).
+    pub fn parse(text: &str) -> Result<Config, ConfigError> {
+        let cfg: Config = toml::from_str(text).map_err(|e| ConfigError::Parse {
+            path: PathBuf::from("<config>"),
+            message: e.to_string(),
+        })?;
+        cfg.validate()?;
+        Ok(cfg)
+    }
+
+    /// Checks every value; the error names the first bad key.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let r = &self.render;
+        for (k, v) in [("render.width", r.width), ("render.height", r.height)] {
+            if v == 0 || v > MAX_IMAGE_SIZE {
+                return Err(invalid(k, format!("{v} is not in 1..={MAX_IMAGE_SIZE}")));
+            }
+        }
+        if r.tile_size == 0 || r.tile_size > MAX_TILE_SIZE {
+            return Err(invalid(
+                "render.tile_size",
+                format!("{} is not in 1..={MAX_TILE_SIZE}", r.tile_size),
+            ));
+        }
+        if r.reflection_depth > 16 {
+            return Err(invalid(
+                "render.reflection_depth",
+                format!("{} is over 16", r.reflection_depth),
+            ));
+        }
+        check_camera("render.camera", &r.camera)?;
+        if !r.light.position.iter().all(|x| x.is_finite())
+            || !r.light.intensity.iter().all(|x| x.is_finite() && *x >= 0.0)
+        {
+            return Err(invalid(
+                "render.light",
+                "position and intensity must be finite, intensity not negative",
+            ));
+        }
+        if self.scene.database.as_os_str().is_empty() {
+            return Err(invalid("scene.database", "is empty"));
+        }
+        if self.certs.dir.as_os_str().is_empty() {
+            return Err(invalid("certs.dir", "is empty"));
+        }
+
+        let mut addrs: Vec<(String, SocketAddr)> = vec![
+            (
+                "scheduler.address".into(),
+                parse_addr("scheduler.address", &self.scheduler.address)?,
+            ),
+            (
+                "display.address".into(),
+                parse_addr("display.address", &self.display.address)?,
+            ),
+        ];
+        if let Some(web) = &self.display.web {
+            addrs.push(("display.web".into(), parse_addr("display.web", web)?));
+        }
+        if self.stores.is_empty() {
+            return Err(invalid("stores", "at least one store is needed"));
+        }
+        for (i, s) in self.stores.iter().enumerate() {
+            let key = format!("stores[{i}].address");
+            let a = parse_addr(&key, &s.address)?;
+            addrs.push((key, a));
+        }
+        for (i, (ka, a)) in addrs.iter().enumerate() {
+            if a.port() == 0 {
+                return Err(invalid(ka.clone(), "port 0: other nodes could not find it"));
+            }
+            if let Some((kb, _)) = addrs[..i].iter().find(|(_, b)| b == a) {
+                return Err(invalid(ka.clone(), format!("{a} is also {kb}")));
+            }
+        }
+
+        let c = &self.clients;
+        if c.count == 0 {
+            return Err(invalid("clients.count", "at least one client is needed"));
+        }
+        if c.threads == 0 || c.threads > 1024 {
+            return Err(invalid(
+                "clients.threads",
+                format!("{} is not in 1..=1024", c.threads),
+            ));
+        }
+        if c.cache_mb == 0 {
+            return Err(invalid(
+                "clients.cache_mb",
+                "a zero cache could not hold a single voxel",
+            ));
+        }
+        if c.cache_mb > 1 << 20 {
+            return Err(invalid(
+                "clients.cache_mb",
+                format!("{} MB is more than 1 TB", c.cache_mb),
+            ));
+        }
+        if c.max_inflight_fetches == 0 {
+            return Err(invalid(
+                "clients.max_inflight_fetches",
+                "must be at least 1",
+            ));
+        }
+        if c.tiles_in_flight == 0 {
+            return Err(invalid("clients.tiles_in_flight", "must be at least 1"));
+        }
+        if c.bind.parse::<std::net::IpAddr>().is_err() {
+            return Err(invalid(
+                "clients.bind",
+                format!("{:?} is not an IP address", c.bind),
+            ));
+        }
+        self.links.client_store.validate("links.client_store")?;
+        self.links
+            .client_scheduler
+            .validate("links.client_scheduler")?;
+        self.links.display.validate("links.display")?;
+        Ok(())
+    }
+
+    /// The scheduler's address.
+    pub fn scheduler_addr(&self) -> Result<SocketAddr, ConfigError> {
+        parse_addr("scheduler.address", &self.scheduler.address)
+    }
+
+    /// The display's address.
+    pub fn display_addr(&self) -> Result<SocketAddr, ConfigError> {
+        parse_addr("display.address", &self.display.address)
+    }
+
+    /// Each store's address, in order.
+    pub fn store_addrs(&self) -> Result<Vec<SocketAddr>, ConfigError> {
+        self.stores
+            .iter()
+            .enumerate()
+            .map(|(i, s)| parse_addr(&format!("stores[{i}].address"), &s.address))
+            .collect()
+    }
+
+    /// The client cache budget in bytes.
+    pub fn cache_bytes(&self) -> u64 {
+        self.clients.cache_mb * 1_000_000
+    }
+
+    /// Every node's name: `scheduler`, `display`, `store-I`, `client-I`.
+    pub fn node_names(&self) -> Vec<String> {
+        let mut v = vec!["scheduler".to_string(), "display".to_string()];
+        v.extend((0..self.stores.len()).map(|i| format!("store-{i}")));
+        v.extend((0..self.clients.count).map(|i| format!("client-{i}")));
+        v
+    }
+}

@@ -1,0 +1,122 @@
+//! The example parses; each kind of mistake is named by its key.
+
+use dray_config::{Config, ConfigError, MissMode};
+use std::path::Path;
+
+fn example_text() -> String {
+    std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/local.toml"))
+        .unwrap()
+}
+
+#[test]
+fn the_local_example_loads() {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/local.toml");
+    let cfg = Config::load(&path).unwrap();
+    assert_eq!(cfg.clients.count, 4);
+    assert_eq!(cfg.clients.miss_mode, MissMode::Suspend);
+    assert_eq!(cfg.store_addrs().unwrap().len(), 2);
+    assert!(cfg.scheduler_addr().unwrap().ip().is_loopback());
+    assert!(cfg.certs.dir.starts_with(path.parent().unwrap()));
+    assert_eq!(
+        cfg.node_names(),
+        [
+            "scheduler",
+            "display",
+            "store-0",
+            "store-1",
+            "client-0",
+            "client-1",
+            "client-2",
+            "client-3"
+        ]
+    );
+    assert_eq!(cfg.cache_bytes(), 256_000_000);
+    assert!(!cfg.links.client_store.is_shaped());
+}
+
+/// Replaces the first occurrence of `from` in the example and returns the
+/// validation error.
+fn broken(from: &str, to: &str) -> ConfigError {
+    let text = example_text();
+    assert!(text.contains(from), "example lacks {from:?}");
+    Config::parse(&text.replacen(from, to, 1)).unwrap_err()
+}
+
+fn assert_names(err: ConfigError, key: &str, problem: &str) {
+    let msg = err.to_string();
+    assert!(msg.contains(key), "{msg:?} should name {key:?}");
+    assert!(msg.contains(problem), "{msg:?} should say {problem:?}");
+}
+
+#[test]
+fn mistakes_name_their_key() {
+    assert_names(
+        broken("cache_mb = 256", "cache_mb = 0"),
+        "clients.cache_mb",
+        "zero cache",
+    );
+    assert_names(
+        broken("address = \"127.0.0.1:7411\"", "address = \"localhost\""),
+        "stores[1].address",
+        "IP:PORT",
+    );
+    assert_names(
+        broken(
+            "address = \"127.0.0.1:7411\"",
+            "address = \"127.0.0.1:7400\"",
+        ),
+        "stores[1].address",
+        "also scheduler.address",
+    );
+    assert_names(
+        broken("tile_size = 32", "tile_size = 1000"),
+        "render.tile_size",
+        "1..=256",
+    );
+    assert_names(
+        broken("count = 4", "count = 0"),
+        "clients.count",
+        "at least one",
+    );
+    assert_names(
+        broken("fov_y_deg = 50.0", "fov_y_deg = 190.0"),
+        "render.camera.fov_y_deg",
+        "(0, 180)",
+    );
+    assert_names(
+        broken(
+            "[links.client_store]\nlatency_ms = 0.0",
+            "[links.client_store]\nlatency_ms = -3.0",
+        ),
+        "links.client_store.latency_ms",
+        "between 0",
+    );
+    assert_names(
+        broken("loss = 0.0", "loss = 1.5"),
+        "links.client_store.loss",
+        "[0, 1)",
+    );
+}
+
+#[test]
+fn unknown_fields_and_wrong_types_are_refused_by_toml() {
+    assert_names(
+        broken("threads = 2", "thread = 2"),
+        "",
+        "unknown field `thread`",
+    );
+    assert_names(
+        broken("miss_mode = \"suspend\"", "miss_mode = \"hope\""),
+        "",
+        "unknown variant `hope`",
+    );
+    let e = broken("width = 1280", "width = \"wide\"");
+    assert!(matches!(e, ConfigError::Parse { .. }));
+    assert!(e.to_string().contains("width"), "{e}");
+}
+
+#[test]
+fn a_missing_file_names_its_path() {
+    let e = Config::load(Path::new("/nonexistent/dray.toml")).unwrap_err();
+    assert!(e.to_string().contains("/nonexistent/dray.toml"), "{e}");
+}

@@ -1,0 +1,109 @@
+//! One valid message of every kind, for tests of the protocol and of the
+//! transports (every transport must carry each of them unchanged).
+
+use crate::*;
+
+fn camera() -> Camera {
+    Camera {
+        eye: [0.0, 1.5, -10.0],
+        look: [0.0, 1.0, 0.0],
+        up: [0.0, 1.0, 0.0],
+        fov_y_deg: 45.0,
+    }
+}
+
+/// One message of each kind in [`MessageKind::ALL`] order. The tile result
+/// carries a 32×32 tile with depth and primitive ids; the voxel carries
+/// `voxel_bytes` bytes.
+pub fn one_of_each(voxel_bytes: usize) -> Vec<Message> {
+    let tile = TileRect {
+        x: 32,
+        y: 64,
+        w: 32,
+        h: 32,
+    };
+    let n = tile.area();
+    vec![
+        Message::RequestWork(RequestWork { slots: 4 }),
+        Message::AssignTile(AssignTile {
+            frame: 7,
+            tile,
+            camera: camera(),
+            width: 640,
+            height: 480,
+            settings: RenderSettings {
+                shadows: true,
+                reflection_depth: 2,
+                light: Light {
+                    position: [10.0, 20.0, -5.0],
+                    intensity: [1.0, 0.9, 0.8],
+                },
+                want_depth: true,
+                want_prim_ids: true,
+            },
+        }),
+        Message::TileDone(TileDone {
+            frame: 7,
+            tile,
+            pixels: Blob((0..n * 4).map(|i| (i * 7) as u8).collect()),
+            depth: Some(PackedF32(
+                (0..n)
+                    .map(|i| if i % 5 == 0 { f32::INFINITY } else { i as f32 })
+                    .collect(),
+            )),
+            prim_ids: Some(PackedU32(
+                (0..n)
+                    .map(|i| if i % 5 == 0 { u32::MAX } else { i as u32 })
+                    .collect(),
+            )),
+            stats: TileStats {
+                rays: 3072,
+                time_us: 1234,
+                voxels_touched: 17,
+                misses: 3,
+                bytes_fetched: 123_456,
+            },
+        }),
+        Message::FetchVoxel(FetchVoxel { id: 42 }),
+        Message::VoxelLoaded(VoxelLoaded {
+            id: 42,
+            data: Blob((0..voxel_bytes).map(|i| (i % 251) as u8).collect()),
+        }),
+        Message::VoxelError(VoxelError {
+            id: 43,
+            message: "voxel 43 failed its checksum".into(),
+        }),
+        Message::CameraUpdate(CameraUpdate {
+            seq: 9,
+            camera: camera(),
+        }),
+        Message::FrameDone(FrameDone {
+            frame: 7,
+            stats: FrameStats {
+                tiles: 300,
+                reassigned: 1,
+                rays: 1_000_000,
+                time_us: 40_000,
+                misses: 12,
+                bytes_fetched: 9_999_999,
+                clients: BoundedVec::new(vec![ClientFrameStats {
+                    node: Name::new("client-0").expect("constant name is valid"),
+                    tiles: 300,
+                    rays: 1_000_000,
+                    misses: 12,
+                    bytes_fetched: 9_999_999,
+                }])
+                .expect("one entry is under the bound"),
+            },
+        }),
+        Message::PrefetchHint(PrefetchHint {
+            frame: 8,
+            voxels: PackedU32(vec![1, 2, 3, 500, 70_000]),
+        }),
+        Message::Ping(Ping { seq: 1 }),
+        Message::Pong(Ping { seq: 1 }),
+        Message::Shutdown(Shutdown {
+            reason: "test over".into(),
+        }),
+    ]
+}

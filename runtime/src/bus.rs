@@ -1,0 +1,393 @@
+//! The bus: mailboxes, addresses, routing to local actors and remote peers.
+
+use crate::inproc::InProcLink;
+use crate::quic::QuicPeer;
+use dray_protocol::{Address, Envelope, Message, Name, ProtocolError, Role};
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex, MutexGuard, Weak};
+use tokio::sync::{mpsc, Notify};
+use tracing::{debug, warn};
+
+/// What an actor receives.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Delivery {
+    /// A message from another actor.
+    Message {
+        /// The sender.
+        from: Address,
+        /// The message.
+        msg: Message,
+    },
+    /// A connection to a node came up (or came back).
+    PeerUp {
+        /// The node.
+        node: Name,
+        /// Its role, as it announced it.
+        role: Role,
+    },
+    /// The connection to a node was lost; messages to it fail until it is
+    /// back (a dialed peer is redialed with backoff).
+    PeerDown {
+        /// The node.
+        node: Name,
+        /// Why, for logs.
+        reason: String,
+    },
+}
+
+/// Why a mailbox could not be created.
+#[derive(Debug, thiserror::Error)]
+pub enum BusError {
+    /// The actor name is taken on this node.
+    #[error("an actor named {0} already exists on this node")]
+    Taken(Name),
+    /// A mailbox needs room for at least one message.
+    #[error("a mailbox needs a capacity of at least 1")]
+    ZeroCapacity,
+    /// A node of that name already exists (in-process network).
+    #[error("a node named {0} already exists")]
+    NodeExists(Name),
+    /// The shape is unusable.
+    #[error(transparent)]
+    Shape(#[from] crate::shaping::ShapeError),
+}
+
+/// Why a message could not be sent.
+#[derive(Debug, thiserror::Error)]
+pub enum SendError {
+    /// No actor of that name on its node (or it has stopped).
+    #[error("no actor {0}")]
+    NoSuchActor(Address),
+    /// No connection to that node now.
+    #[error("node {0} is not connected")]
+    PeerUnavailable(Name),
+    /// The message is invalid or over its size limit.
+    #[error("cannot send: {0}")]
+    Protocol(#[from] ProtocolError),
+    /// The connection failed while sending.
+    #[error("connection to {node} failed while sending: {reason}")]
+    Connection {
+        /// The node.
+        node: Name,
+        /// What happened.
+        reason: String,
+    },
+}
+
+#[derive(Clone)]
+pub(crate) enum PeerLink {
+    InProc(Arc<InProcLink>),
+    Quic(Arc<QuicPeer>),
+}
+
+impl PeerLink {
+    async fn send(&self, env: Envelope) -> Result<(), SendError> {
+        match self {
+            PeerLink::InProc(l) => l.send(env).await,
+            PeerLink::Quic(p) => p.send(env).await,
+        }
+    }
+
+    fn id(&self) -> usize {
+        match self {
+            PeerLink::InProc(l) => Arc::as_ptr(l) as *const () as usize,
+            PeerLink::Quic(p) => Arc::as_ptr(p) as *const () as usize,
+        }
+    }
+}
+
+pub(crate) struct Inner {
+    pub(crate) node: Name,
+    pub(crate) role: Role,
+    actors: Mutex<HashMap<Name, mpsc::Sender<Delivery>>>,
+    peers: Mutex<HashMap<Name, (PeerLink, Role)>>,
+    peers_changed: Notify,
+}
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    // A panic while holding these maps cannot leave them inconsistent (each
+    // update is one insert or remove), so a poisoned lock is still usable.
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+impl Inner {
+    /// Delivers an envelope that arrived for this node to its actor.
+    pub(crate) async fn deliver_local(&self, env: Envelope) -> Result<(), SendError> {
+        let tx = lock(&self.actors).get(&env.to.actor).cloned();
+        let Some(tx) = tx else {
+            return Err(SendError::NoSuchActor(env.to));
+        };
+        let to = env.to;
+        tx.send(Delivery::Message {
+            from: env.from,
+            msg: env.msg,
+        })
+        .await
+        .map_err(|_| SendError::NoSuchActor(to))
+    }
+
+    fn broadcast(&self, d: Delivery) {
+        let txs: Vec<_> = lock(&self.actors).values().cloned().collect();
+        for tx in txs {
+            match tx.try_send(d.clone()) {
+                Ok(()) | Err(mpsc::error::TrySendError::Closed(_)) => {}
+                Err(mpsc::error::TrySendError::Full(d)) => {
+                    // Never lose a peer event: wait for room in the background.
+                    tokio::spawn(async move {
+                        let _ = tx.send(d).await;
+                    });
+                }
+            }
+        }
+    }
+
+    pub(crate) fn peer_up(&self, node: Name, role: Role, link: PeerLink) {
+        lock(&self.peers).insert(node.clone(), (link, role));
+        debug!(local = %self.node, peer = %node, %role, "peer up");
+        self.peers_changed.notify_waiters();
+        self.broadcast(Delivery::PeerUp { node, role });
+    }
+
+    /// Removes the link if it is still the one registered for `node`.
+    pub(crate) fn peer_down(&self, node: &Name, link_id: usize, reason: String) {
+        let removed = {
+            let mut peers = lock(&self.peers);
+            match peers.get(node) {
+                Some((l, _)) if l.id() == link_id => peers.remove(node).is_some(),
+                _ => false,
+            }
+        };
+        if removed {
+            warn!(local = %self.node, peer = %node, %reason, "peer down");
+            self.peers_changed.notify_waiters();
+            self.broadcast(Delivery::PeerDown {
+                node: node.clone(),
+                reason,
+            });
+        }
+    }
+
+    pub(crate) fn link_id(link: &PeerLink) -> usize {
+        link.id()
+    }
+}
+
+/// One node's message bus. Cheap to clone.
+#[derive(Clone)]
+pub struct Bus {
+    pub(crate) inner: Arc<Inner>,
+}
+
+impl std::fmt::Debug for Bus {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Bus")
+            .field("node", &self.inner.node)
+            .finish()
+    }
+}
+
+impl Bus {
+    /// A bus for node `node` with no peers yet; attach it to an
+    /// [`crate::InProcNet`] or a [`crate::quic::QuicTransport`] to reach others.
+    pub fn new(node: Name, role: Role) -> Bus {
+        Bus {
+            inner: Arc::new(Inner {
+                node,
+                role,
+                actors: Mutex::new(HashMap::new()),
+                peers: Mutex::new(HashMap::new()),
+                peers_changed: Notify::new(),
+            }),
+        }
+    }
+
+    pub(crate) fn downgrade(&self) -> Weak<Inner> {
+        Arc::downgrade(&self.inner)
+    }
+
+    /// This node's name.
+    pub fn node(&self) -> &Name {
+        &self.inner.node
+    }
+
+    /// This node's role.
+    pub fn role(&self) -> Role {
+        self.inner.role
+    }
+
+    /// The address of actor `actor` on this node.
+    pub fn address(&self, actor: Name) -> Address {
+        Address::new(self.inner.node.clone(), actor)
+    }
+
+    /// Creates the mailbox of actor `actor` on this node, holding at most
+    /// `capacity` undelivered messages (senders wait when it is full).
+    pub fn mailbox(&self, actor: Name, capacity: usize) -> Result<Mailbox, BusError> {
+        if capacity == 0 {
+            return Err(BusError::ZeroCapacity);
+        }
+        let (tx, rx) = mpsc::channel(capacity);
+        {
+            let mut actors = lock(&self.inner.actors);
+            if let Some(old) = actors.get(&actor) {
+                if !old.is_closed() {
+                    return Err(BusError::Taken(actor));
+                }
+            }
+            actors.insert(actor.clone(), tx);
+        }
+        Ok(Mailbox {
+            me: ActorRef {
+                bus: self.clone(),
+                addr: self.address(actor),
+            },
+            rx,
+        })
+    }
+
+    /// Sends `msg` from `from` to `to`, wherever `to` lives. Waits while the
+    /// receiving mailbox (or the link) is full.
+    pub async fn send(&self, from: &Address, to: &Address, msg: Message) -> Result<(), SendError> {
+        let env = Envelope {
+            msg,
+            from: from.clone(),
+            to: to.clone(),
+        };
+        if to.node == self.inner.node {
+            env.msg.validate()?;
+            return self.inner.deliver_local(env).await;
+        }
+        let link = lock(&self.inner.peers)
+            .get(&to.node)
+            .map(|(l, _)| l.clone());
+        match link {
+            Some(link) => link.send(env).await,
+            None => Err(SendError::PeerUnavailable(to.node.clone())),
+        }
+    }
+
+    /// Nodes connected now, with their roles.
+    pub fn peers(&self) -> Vec<(Name, Role)> {
+        let mut v: Vec<_> = lock(&self.inner.peers)
+            .iter()
+            .map(|(n, (_, r))| (n.clone(), *r))
+            .collect();
+        v.sort_by(|a, b| a.0.cmp(&b.0));
+        v
+    }
+
+    /// Whether `node` is connected now.
+    pub fn is_connected(&self, node: &Name) -> bool {
+        lock(&self.inner.peers).contains_key(node)
+    }
+
+    /// Waits until `node` is connected.
+    pub async fn wait_for_peer(&self, node: &Name) {
+        loop {
+            let notified = self.inner.peers_changed.notified();
+            tokio::pin!(notified);
+            notified.as_mut().enable();
+            if self.is_connected(node) {
+                return;
+            }
+            notified.await;
+        }
+    }
+
+    /// Waits until `node` is not connected.
+    pub async fn wait_for_peer_loss(&self, node: &Name) {
+        loop {
+            let notified = self.inner.peers_changed.notified();
+            tokio::pin!(notified);
+            notified.as_mut().enable();
+            if !self.is_connected(node) {
+                return;
+            }
+            notified.await;
+        }
+    }
+}
+
+/// A handle that sends as one actor. Cheap to clone; hand it to the tasks
+/// of the actor.
+#[derive(Clone, Debug)]
+pub struct ActorRef {
+    bus: Bus,
+    addr: Address,
+}
+
+impl ActorRef {
+    /// The actor's address.
+    pub fn address(&self) -> &Address {
+        &self.addr
+    }
+
+    /// The bus it sends through.
+    pub fn bus(&self) -> &Bus {
+        &self.bus
+    }
+
+    /// Sends `msg` to `to` as this actor.
+    pub async fn send(&self, to: &Address, msg: Message) -> Result<(), SendError> {
+        let span = tracing::trace_span!("send", kind = msg.kind().name(), to = %to);
+        let _e = span.enter();
+        self.bus.send(&self.addr, to, msg).await
+    }
+}
+
+/// An actor's bounded mailbox. Dropping it removes the actor from its node.
+#[derive(Debug)]
+pub struct Mailbox {
+    me: ActorRef,
+    rx: mpsc::Receiver<Delivery>,
+}
+
+impl Mailbox {
+    /// The actor's address.
+    pub fn address(&self) -> &Address {
+        &self.me.addr
+    }
+
+    /// A sending handle for this actor.
+    pub fn handle(&self) -> ActorRef {
+        self.me.clone()
+    }
+
+    /// Sends `msg` to `to` as this actor.
+    pub async fn send(&self, to: &Address, msg: Message) -> Result<(), SendError> {
+        self.me.send(to, msg).await
+    }
+
+    /// The next delivery; `None` once the bus is gone.
+    pub async fn recv(&mut self) -> Option<Delivery> {
+        self.rx.recv().await
+    }
+
+    /// The next delivery if one is waiting.
+    pub fn try_recv(&mut self) -> Option<Delivery> {
+        self.rx.try_recv().ok()
+    }
+
+    /// The next message, skipping peer events.
+    pub async fn recv_message(&mut self) -> Option<(Address, Message)> {
+        loop {
+            match self.rx.recv().await? {
+                Delivery::Message { from, msg } => return Some((from, msg)),
+                other => debug!(actor = %self.me.addr, ?other, "skipped peer event"),
+            }
+        }
+    }
+}
+
+impl Drop for Mailbox {
+    fn drop(&mut self) {
+        self.rx.close();
+        let mut actors = lock(&self.me.bus.inner.actors);
+        if actors
+            .get(&self.me.addr.actor)
+            .is_some_and(|tx| tx.is_closed())
+        {
+            actors.remove(&self.me.addr.actor);
+        }
+    }
+}

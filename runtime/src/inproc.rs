@@ -1,0 +1,231 @@
+//! The in-process transport: many nodes in one process, linked by channels,
+//! with the same encoding, limits and (optionally) shaping as the wire.
+
+use crate::bus::{Bus, BusError, Inner, PeerLink, SendError};
+use crate::shaping::{Lane, LinkShape, Shaper};
+use dray_protocol::{decode_envelope, encode_envelope, Envelope, Name, Role};
+use std::collections::{BTreeMap, HashMap};
+use std::hash::{Hash, Hasher};
+use std::sync::{Arc, Mutex, MutexGuard, Weak};
+use std::time::Duration;
+use tokio::sync::mpsc;
+use tokio::time::Instant;
+use tracing::{trace, warn, Instrument};
+
+/// Messages waiting in one shaped direction before senders wait.
+const PIPE_CAPACITY: usize = 1024;
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+struct Pipe {
+    shaper: Mutex<Shaper>,
+    /// One ordered queue per lane (control, bulk).
+    tx: [mpsc::Sender<(Instant, Envelope)>; 2],
+}
+
+/// One direction between two in-process nodes.
+pub(crate) struct InProcLink {
+    dst_name: Name,
+    dst: Weak<Inner>,
+    pipe: Mutex<Option<Arc<Pipe>>>,
+}
+
+impl InProcLink {
+    pub(crate) async fn send(&self, env: Envelope) -> Result<(), SendError> {
+        let kind = env.msg.kind();
+        // Encode exactly as the wire would: same validation, same limits, and
+        // the size that shaping charges. The receiver decodes these bytes.
+        let body = encode_envelope(&env)?;
+        let pipe = lock(&self.pipe).clone();
+        match pipe {
+            None => {
+                let dst = self
+                    .dst
+                    .upgrade()
+                    .ok_or_else(|| SendError::PeerUnavailable(self.dst_name.clone()))?;
+                let env = decode_envelope(&body)?;
+                dst.deliver_local(env).await
+            }
+            Some(pipe) => {
+                let lane = if kind.is_bulk() {
+                    Lane::Bulk
+                } else {
+                    Lane::Control
+                };
+                let at = lock(&pipe.shaper).reliable(body.len(), lane);
+                trace!(kind = kind.name(), bytes = body.len(), "shaped send");
+                let env = decode_envelope(&body)?;
+                pipe.tx[lane as usize]
+                    .send((at, env))
+                    .await
+                    .map_err(|_| SendError::PeerUnavailable(self.dst_name.clone()))
+            }
+        }
+    }
+
+    /// Starts the task that delivers one lane's messages at their times.
+    fn spawn_lane(&self, lane: &'static str) -> mpsc::Sender<(Instant, Envelope)> {
+        let (tx, mut rx) = mpsc::channel::<(Instant, Envelope)>(PIPE_CAPACITY);
+        let dst = self.dst.clone();
+        let span = tracing::debug_span!("inproc_link", to = %self.dst_name, lane);
+        tokio::spawn(
+            async move {
+                while let Some((at, env)) = rx.recv().await {
+                    tokio::time::sleep_until(at).await;
+                    let Some(dst) = dst.upgrade() else { break };
+                    if let Err(e) = dst.deliver_local(env).await {
+                        warn!(error = %e, "shaped message not delivered");
+                    }
+                }
+            }
+            .instrument(span),
+        );
+        tx
+    }
+
+    fn set_shape(&self, shape: LinkShape, seed: u64) {
+        let mut pipe = lock(&self.pipe);
+        if shape.is_none() {
+            *pipe = None;
+            return;
+        }
+        let tx = [self.spawn_lane("control"), self.spawn_lane("bulk")];
+        *pipe = Some(Arc::new(Pipe {
+            shaper: Mutex::new(Shaper::new(shape, seed, Duration::ZERO)),
+            tx,
+        }));
+    }
+}
+
+#[derive(Default)]
+struct NetState {
+    nodes: BTreeMap<Name, (Weak<Inner>, Role)>,
+    links: HashMap<(Name, Name), Arc<InProcLink>>,
+    shapes: HashMap<(Name, Name), LinkShape>,
+}
+
+/// A network of in-process nodes: every node added is connected to every
+/// other one. Shaping and partitions can be set per pair of nodes.
+#[derive(Clone, Default)]
+pub struct InProcNet {
+    state: Arc<Mutex<NetState>>,
+}
+
+fn seed(a: &Name, b: &Name) -> u64 {
+    let mut h = std::collections::hash_map::DefaultHasher::new();
+    (a, b).hash(&mut h);
+    h.finish()
+}
+
+impl InProcNet {
+    /// An empty network.
+    pub fn new() -> Self {
+        InProcNet::default()
+    }
+
+    /// Adds node `name` and connects it to every node already there; each
+    /// side's actors get a [`crate::Delivery::PeerUp`]. Call within a tokio
+    /// runtime.
+    pub fn add_node(&self, name: Name, role: Role) -> Result<Bus, BusError> {
+        let bus = Bus::new(name.clone(), role);
+        let others: Vec<(Name, Arc<Inner>, Role)> = {
+            let mut st = lock(&self.state);
+            st.nodes.retain(|_, (w, _)| w.strong_count() > 0);
+            if st.nodes.contains_key(&name) {
+                return Err(BusError::NodeExists(name));
+            }
+            st.nodes.insert(name.clone(), (bus.downgrade(), role));
+            st.nodes
+                .iter()
+                .filter(|(n, _)| **n != name)
+                .filter_map(|(n, (w, r))| w.upgrade().map(|i| (n.clone(), i, *r)))
+                .collect()
+        };
+        for (_, inner, _) in others {
+            self.link(&bus.inner, &inner);
+            self.link(&inner, &bus.inner);
+        }
+        Ok(bus)
+    }
+
+    /// Creates the direction `from → to` and announces it to `from`.
+    fn link(&self, from: &Arc<Inner>, to: &Arc<Inner>) {
+        let link = Arc::new(InProcLink {
+            dst_name: to.node.clone(),
+            dst: Arc::downgrade(to),
+            pipe: Mutex::new(None),
+        });
+        let key = (from.node.clone(), to.node.clone());
+        let shape = {
+            let mut st = lock(&self.state);
+            st.links.insert(key.clone(), link.clone());
+            st.shapes.get(&key).copied()
+        };
+        if let Some(shape) = shape {
+            link.set_shape(shape, seed(&key.0, &key.1));
+        }
+        from.peer_up(to.node.clone(), to.role, PeerLink::InProc(link));
+    }
+
+    /// Shapes both directions between `a` and `b` (now and for links made
+    /// later). Set it before traffic flows: messages already queued keep
+    /// their old timing. Call within a tokio runtime.
+    pub fn set_shape(&self, a: &Name, b: &Name, shape: LinkShape) -> Result<(), BusError> {
+        shape.validate()?;
+        let mut st = lock(&self.state);
+        for key in [(a.clone(), b.clone()), (b.clone(), a.clone())] {
+            st.shapes.insert(key.clone(), shape);
+            if let Some(link) = st.links.get(&key) {
+                link.set_shape(shape, seed(&key.0, &key.1));
+            }
+        }
+        Ok(())
+    }
+
+    /// Cuts both directions between `a` and `b`; each side's actors get a
+    /// [`crate::Delivery::PeerDown`].
+    pub fn disconnect(&self, a: &Name, b: &Name) {
+        let (links, nodes) = {
+            let mut st = lock(&self.state);
+            let l1 = st.links.remove(&(a.clone(), b.clone()));
+            let l2 = st.links.remove(&(b.clone(), a.clone()));
+            let na = st.nodes.get(a).and_then(|(w, _)| w.upgrade());
+            let nb = st.nodes.get(b).and_then(|(w, _)| w.upgrade());
+            ([l1, l2], [na, nb])
+        };
+        let [la, lb] = links;
+        let [na, nb] = nodes;
+        if let (Some(l), Some(n)) = (la, na) {
+            n.peer_down(
+                b,
+                Inner::link_id(&PeerLink::InProc(l)),
+                "disconnected".into(),
+            );
+        }
+        if let (Some(l), Some(n)) = (lb, nb) {
+            n.peer_down(
+                a,
+                Inner::link_id(&PeerLink::InProc(l)),
+                "disconnected".into(),
+            );
+        }
+    }
+
+    /// Restores both directions between `a` and `b` after a
+    /// [`InProcNet::disconnect`]; each side gets a [`crate::Delivery::PeerUp`].
+    pub fn reconnect(&self, a: &Name, b: &Name) {
+        let (na, nb) = {
+            let st = lock(&self.state);
+            (
+                st.nodes.get(a).and_then(|(w, _)| w.upgrade()),
+                st.nodes.get(b).and_then(|(w, _)| w.upgrade()),
+            )
+        };
+        if let (Some(na), Some(nb)) = (na, nb) {
+            self.link(&na, &nb);
+            self.link(&nb, &na);
+        }
+    }
+}
