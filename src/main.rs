@@ -68,6 +68,11 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Cluster certificates (mutual TLS between nodes).
+    Certs {
+        #[command(subcommand)]
+        action: CertsAction,
+    },
     /// Generate a default plant, preprocess it (kept for the next run) and
     /// show what it holds.
     Demo {
@@ -77,6 +82,21 @@ enum Command {
         /// Triangles of the generated plant.
         #[arg(long, default_value_t = 1_000_000)]
         triangles: u64,
+    },
+}
+
+#[derive(Subcommand)]
+enum CertsAction {
+    /// Create a cluster CA in DIR and a certificate for every node, named
+    /// from a cluster config (--config) or listed (--nodes).
+    Init {
+        dir: PathBuf,
+        /// Issue certificates for every node of this cluster config.
+        #[arg(long, conflicts_with = "nodes")]
+        config: Option<PathBuf>,
+        /// Node names, comma separated (e.g. scheduler,display,store-0,client-0).
+        #[arg(long, value_delimiter = ',')]
+        nodes: Vec<String>,
     },
 }
 
@@ -182,6 +202,25 @@ fn run(cli: Cli) -> Result<ExitCode> {
             } else {
                 print!("{}", info.to_text());
             }
+        }
+        Command::Certs {
+            action: CertsAction::Init { dir, config, nodes },
+        } => {
+            let nodes = match config {
+                Some(path) => dray_config::Config::load(&path)?.node_names(),
+                None if nodes.is_empty() => {
+                    bail!("name the nodes with --config CONFIG or --nodes a,b,c")
+                }
+                None => nodes,
+            };
+            let names: Vec<&str> = nodes.iter().map(String::as_str).collect();
+            let written = dray_runtime::certs::init_cluster(&dir, &names)?;
+            println!(
+                "{}: cluster CA and certificates for {} nodes ({} files)",
+                dir.display(),
+                names.len(),
+                written.len()
+            );
         }
         Command::Demo { dir, triangles } => demo(&dir, triangles)?,
     }

@@ -134,3 +134,29 @@ fn bad_input_is_a_clear_error_not_a_panic() {
     assert!(!out.status.success());
     assert!(text(&out).contains("AxBxC"), "{}", text(&out));
 }
+
+#[test]
+fn certs_init_issues_a_certificate_per_node_of_the_config() {
+    let dir = tempfile::tempdir().unwrap();
+    let certs = dir.path().join("certs");
+    let config = concat!(env!("CARGO_MANIFEST_DIR"), "/config/examples/local.toml");
+    let out = dray(&["certs", "init", s(&certs), "--config", config]);
+    assert!(out.status.success(), "{}", text(&out));
+    for f in [
+        "ca.pem",
+        "ca.key",
+        "scheduler.pem",
+        "scheduler.key",
+        "display.pem",
+        "client-0.pem",
+    ] {
+        assert!(certs.join(f).is_file(), "{f} missing: {}", text(&out));
+    }
+    // The CA is never replaced.
+    let again = dray(&["certs", "init", s(&certs), "--nodes", "client-9"]);
+    assert!(!again.status.success());
+    assert!(text(&again).contains("ca.key"), "{}", text(&again));
+    let none = dray(&["certs", "init", s(&dir.path().join("x"))]);
+    assert!(!none.status.success());
+    assert!(text(&none).contains("--nodes"), "{}", text(&none));
+}
