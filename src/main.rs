@@ -8,6 +8,10 @@ use dray_scene::db::Database;
 use dray_scene::generate::{generate_plant, PlantParams};
 use dray_scene::preprocess::{self, preprocess, PreprocessOptions};
 use dray_scene::progress::Progress;
+use dray_trace::camera::Camera;
+use dray_trace::render::{render_repeated, Isa, RenderSettings};
+use dray_trace::scene::{ResidentSource, TopLevel};
+use glam::Vec3;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
@@ -59,6 +63,8 @@ enum Command {
         #[arg(long, default_value_t = preprocess::DEFAULT_ZSTD_LEVEL)]
         zstd_level: i32,
     },
+    /// Render one view of a database in this process, every voxel loaded.
+    Render(RenderArgs),
     /// Check every voxel of a database; exits non-zero naming each bad one.
     Verify { db: PathBuf },
     /// Summarize a database.
@@ -83,6 +89,62 @@ enum Command {
         #[arg(long, default_value_t = 1_000_000)]
         triangles: u64,
     },
+}
+
+#[derive(clap::Args)]
+struct RenderArgs {
+    db: PathBuf,
+    /// Camera position (default: a view of the whole model).
+    #[arg(long, value_parser = parse_vec3)]
+    eye: Option<Vec3>,
+    /// Point looked at (default: the model's centre).
+    #[arg(long, value_parser = parse_vec3)]
+    look: Option<Vec3>,
+    #[arg(long, value_parser = parse_vec3, default_value = "0,1,0")]
+    up: Vec3,
+    /// Vertical field of view in degrees.
+    #[arg(long, default_value_t = 50.0)]
+    fov: f32,
+    #[arg(long, default_value_t = 640)]
+    width: u32,
+    #[arg(long, default_value_t = 480)]
+    height: u32,
+    /// Shaded image (PNG).
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Hit distances as a grey PFM (DESIGN.md's comparison format).
+    #[arg(long)]
+    depth_out: Option<PathBuf>,
+    /// Original triangle ids as raw little-endian u32.
+    #[arg(long)]
+    primid_out: Option<PathBuf>,
+    /// Hard shadows from the light.
+    #[arg(long)]
+    shadows: bool,
+    /// Direction towards the distant light.
+    #[arg(long, value_parser = parse_vec3, default_value = "0.3,1,0.2")]
+    light: Vec3,
+    /// Render threads (default: every core).
+    #[arg(long, default_value_t = 0)]
+    threads: usize,
+    /// Timed passes (after one untimed warm-up); best and median are reported.
+    #[arg(long, default_value_t = 1)]
+    repeat: usize,
+    /// Print one JSON object as the last line.
+    #[arg(long)]
+    json: bool,
+}
+
+fn parse_vec3(s: &str) -> Result<Vec3, String> {
+    let v: Vec<f32> = s
+        .split(',')
+        .map(|p| p.trim().parse::<f32>())
+        .collect::<Result<_, _>>()
+        .map_err(|_| format!("'{s}' is not x,y,z"))?;
+    match v[..] {
+        [x, y, z] if v.iter().all(|c| c.is_finite()) => Ok(Vec3::new(x, y, z)),
+        _ => Err(format!("'{s}' is not x,y,z (three finite numbers)")),
+    }
 }
 
 #[derive(Subcommand)]
@@ -222,6 +284,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 written.len()
             );
         }
+        Command::Render(args) => render(&args)?,
         Command::Demo { dir, triangles } => demo(&dir, triangles)?,
     }
     Ok(ExitCode::SUCCESS)
@@ -295,5 +358,93 @@ fn demo(dir: &Path, triangles: u64) -> Result<()> {
         bail!("{}: {}", db_path.display(), report.problems.join("; "));
     }
     print!("{}", DbInfo::from_manifest(&db.manifest).to_text());
+    Ok(())
+}
+
+fn render(a: &RenderArgs) -> Result<()> {
+    let db = Database::open(&a.db)?;
+    let load = std::time::Instant::now();
+    let source = ResidentSource::load(&db)?;
+    let load_seconds = load.elapsed().as_secs_f64();
+    let top = TopLevel::from_manifest(&db.manifest);
+    let bounds = db.manifest.model_bounds;
+    let default = Camera::default_for(&bounds, a.width, a.height);
+    let camera = Camera {
+        eye: a.eye.unwrap_or(default.eye),
+        look: a.look.unwrap_or(default.look),
+        up: a.up,
+        fov_degrees: a.fov,
+        ..default
+    };
+    camera.check().map_err(|e| anyhow::anyhow!("camera: {e}"))?;
+    let threads = if a.threads == 0 {
+        std::thread::available_parallelism().map_or(1, |n| n.get())
+    } else {
+        a.threads
+    };
+    let settings = RenderSettings {
+        shade: a.out.is_some() || a.shadows,
+        shadows: a.shadows,
+        light: a.light,
+        threads,
+        isa: Isa::detect(),
+        scene_diagonal: bounds.diagonal(),
+    };
+    let (frame, mut seconds) = render_repeated(&top, &source, &camera, &settings, a.repeat)
+        .map_err(|id| anyhow::anyhow!("voxel {id} was not loaded"))?;
+    if let Some(p) = &a.out {
+        dray_trace::image::write_png(p, frame.width, frame.height, &frame.rgba)?;
+    }
+    if let Some(p) = &a.depth_out {
+        dray_trace::image::write_pfm(p, frame.width, frame.height, &frame.depth)?;
+    }
+    if let Some(p) = &a.primid_out {
+        dray_trace::image::write_u32(p, &frame.primid)?;
+    }
+    seconds.sort_by(f64::total_cmp);
+    let s = &frame.stats;
+    let rays = s.primary_rays + s.shadow_rays;
+    let best = rays as f64 / seconds[0] / 1e6;
+    let median = rays as f64 / seconds[seconds.len() / 2] / 1e6;
+    let shadow_mrays = (s.shadow_seconds > 0.0)
+        .then(|| s.shadow_rays as f64 / (s.shadow_seconds / threads as f64) / 1e6);
+    let hit_fraction = s.hits as f64 / s.primary_rays.max(1) as f64;
+    println!(
+        "{}x{} on {threads} thread(s), {} packets of {}: {:.2} Mrays/s best, {:.2} median ({rays} rays{}), {:.1} % hit, {:.2} voxels per packet; loaded {} voxels ({} MiB) in {load_seconds:.2} s",
+        frame.width,
+        frame.height,
+        settings.isa.name(),
+        settings.isa.lanes(),
+        best,
+        median,
+        if a.shadows { format!(", {} shadow rays", s.shadow_rays) } else { String::new() },
+        100.0 * hit_fraction,
+        s.voxels_visited as f64 / (s.primary_rays as f64 / settings.isa.lanes() as f64),
+        db.manifest.voxels.len(),
+        source.bytes() >> 20
+    );
+    if a.json {
+        let json = serde_json::json!({
+            "mrays_per_s": best,
+            "mrays_per_s_median": median,
+            "rays": rays,
+            "primary_rays": s.primary_rays,
+            "shadow_rays": s.shadow_rays,
+            "shadow_mrays_per_s": shadow_mrays,
+            "occluded_fraction": (s.shadow_rays > 0).then(|| s.occluded as f64 / s.shadow_rays as f64),
+            "threads": threads,
+            "width": frame.width,
+            "height": frame.height,
+            "hit_fraction": hit_fraction,
+            "isa": settings.isa.name(),
+            "lanes": settings.isa.lanes(),
+            "seconds": seconds,
+            "voxels": db.manifest.voxels.len(),
+            "load_seconds": load_seconds,
+            "eye": camera.eye.to_array(),
+            "look": camera.look.to_array(),
+        });
+        println!("{json}");
+    }
     Ok(())
 }

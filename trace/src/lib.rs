@@ -1,3 +1,14 @@
-//! dray-trace: camera, ray packets, two-level traversal and shading.
+//! dray-trace: the ray tracing kernel.
 //!
-//! The kernel arrives with the ray tracing kernel issue.
+//! - [`camera`]: DESIGN.md's pinhole camera.
+//! - [`scene`]: the high-level BSP and voxels in the kernel's layout, and the
+//!   [`scene::VoxelSource`] the kernel asks for voxels.
+//! - [`packet`]: SIMD ray packets and the suspendable two-level traversal.
+//! - [`render`]: frames in tiles on threads, shadows, shading.
+//! - [`image`]: PNG, and the depth/primitive-id comparison formats.
+
+pub mod camera;
+pub mod image;
+pub mod packet;
+pub mod render;
+pub mod scene;

@@ -1,0 +1,479 @@
+//! Ray packets and the suspendable two-level traversal.
+//!
+//! A [`Packet`] holds `N` rays in structure-of-arrays form. Every loop over
+//! its lanes is a plain `for i in 0..N` over fixed-size arrays, written
+//! without branches, so that LLVM turns it into SIMD: the render entry
+//! points (`render.rs`) instantiate this code inside functions compiled for
+//! AVX-512 (16 lanes) or AVX2 (8 lanes), chosen at run time, with a portable
+//! fallback. Hand-written intrinsics would tie the kernel to one ISA; the
+//! generated code was checked to use vector registers throughout.
+//!
+//! [`Traversal`] walks the high-level BSP front to back with per-lane
+//! intervals, then each voxel's BVH. When it reaches a voxel the source does
+//! not hold, it stops and returns [`Step::Missing`]: its whole state (the
+//! stack and the packet's hits) stays in the `Traversal`, and calling
+//! [`Traversal::run`] again later resumes exactly there. The nearest hit is
+//! the minimum over all triangles of (distance, original id), so any order of
+//! voxels, and any pattern of suspensions, gives bit-identical results.
+
+// Lane loops index several arrays in lockstep on purpose: that is the
+// shape LLVM vectorizes.
+#![allow(clippy::needless_range_loop)]
+
+use crate::scene::{PreparedVoxel, TopLevel, TopNode, VoxelSource};
+use glam::Vec3;
+
+/// Relative widening of every culling interval: slab tests round, and a
+/// box or cell must never be culled because of it.
+const WIDEN: f32 = 1.0 / 65536.0;
+/// Stand-in for a zero direction component in slab tests (never in the
+/// triangle test), so that no NaN reaches the interval arithmetic.
+const TINY: f32 = 1e-30;
+
+/// N rays and what they found.
+#[derive(Clone, Debug)]
+pub struct Packet<const N: usize> {
+    /// Origins and directions, per axis.
+    pub org: [[f32; N]; 3],
+    pub dir: [[f32; N]; 3],
+    inv: [[f32; N]; 3],
+    /// Hits count only in `(tmin, t)`: `t` starts at the ray's far limit.
+    pub tmin: f32,
+    pub t: [f32; N],
+    /// ORIGINAL triangle id of the nearest hit, `u32::MAX` for none.
+    pub id: [u32; N],
+    /// Voxel and voxel-local triangle of the hit, and the barycentric
+    /// weights of its second and third corners (for shading).
+    pub voxel: [u32; N],
+    pub tri: [u32; N],
+    pub u: [f32; N],
+    pub v: [f32; N],
+    /// Any-hit query (shadow rays): a lane stops at its first hit and its
+    /// `t` becomes `-inf`.
+    pub any_hit: bool,
+}
+
+impl<const N: usize> Packet<N> {
+    /// A packet of rays from `origins` along unit `dirs`, far limit `tmax`.
+    #[inline(always)]
+    pub fn new(origins: &[Vec3; N], dirs: &[Vec3; N], tmin: f32, tmax: f32) -> Packet<N> {
+        let mut org = [[0.0; N]; 3];
+        let mut dir = [[0.0; N]; 3];
+        let mut inv = [[0.0; N]; 3];
+        for a in 0..3 {
+            for i in 0..N {
+                org[a][i] = origins[i][a];
+                let d = dirs[i][a];
+                dir[a][i] = d;
+                let guarded = if d == 0.0 { TINY.copysign(d) } else { d };
+                inv[a][i] = 1.0 / guarded;
+            }
+        }
+        Packet {
+            org,
+            dir,
+            inv,
+            tmin,
+            t: [tmax; N],
+            id: [u32::MAX; N],
+            voxel: [u32::MAX; N],
+            tri: [u32::MAX; N],
+            u: [0.0; N],
+            v: [0.0; N],
+            any_hit: false,
+        }
+    }
+
+    pub fn hit(&self, lane: usize) -> bool {
+        self.id[lane] != u32::MAX
+    }
+
+    /// Whether lane `i` of a shadow packet is blocked.
+    pub fn occluded(&self, lane: usize) -> bool {
+        self.t[lane] == f32::NEG_INFINITY
+    }
+
+    /// Per-lane interval of the rays inside the box, widened; empty
+    /// (`t0 > t1`) where a ray misses or its current hit is nearer.
+    #[inline(always)]
+    fn slab(&self, min: [f32; 3], max: [f32; 3]) -> ([f32; N], [f32; N]) {
+        let mut t0 = [self.tmin; N];
+        let mut t1 = self.t;
+        for a in 0..3 {
+            for i in 0..N {
+                let near = (min[a] - self.org[a][i]) * self.inv[a][i];
+                let far = (max[a] - self.org[a][i]) * self.inv[a][i];
+                let (lo, hi) = if near < far { (near, far) } else { (far, near) };
+                t0[i] = if lo > t0[i] { lo } else { t0[i] };
+                let hi = hi + hi.abs() * WIDEN;
+                t1[i] = if hi < t1[i] { hi } else { t1[i] };
+            }
+        }
+        for i in 0..N {
+            t0[i] -= t0[i].abs() * WIDEN;
+        }
+        (t0, t1)
+    }
+
+    /// Intersects every lane with one triangle (the watertight test of
+    /// `dray_scene::geometry::intersect_triangle`, operation for operation,
+    /// so distances are bit-identical to the reference) and keeps the
+    /// better of the hit and the lane's current one.
+    #[inline(always)]
+    fn triangle(&mut self, shear: &Shear<N>, p: &[[f32; 3]; 3], id: u32, voxel: u32, tri: u32) {
+        let Shear {
+            kx,
+            ky,
+            kz,
+            sx,
+            sy,
+            sz,
+        } = shear;
+        let (kx, ky, kz) = (*kx, *ky, *kz);
+        let mut u = [0.0f32; N];
+        let mut v = [0.0f32; N];
+        let mut w = [0.0f32; N];
+        let mut tt = [0.0f32; N];
+        let mut any_edge = false;
+        for i in 0..N {
+            let az_ = p[0][kz] - self.org[kz][i];
+            let bz_ = p[1][kz] - self.org[kz][i];
+            let cz_ = p[2][kz] - self.org[kz][i];
+            let ax = (p[0][kx] - self.org[kx][i]) - sx[i] * az_;
+            let ay = (p[0][ky] - self.org[ky][i]) - sy[i] * az_;
+            let bx = (p[1][kx] - self.org[kx][i]) - sx[i] * bz_;
+            let by = (p[1][ky] - self.org[ky][i]) - sy[i] * bz_;
+            let cx = (p[2][kx] - self.org[kx][i]) - sx[i] * cz_;
+            let cy = (p[2][ky] - self.org[ky][i]) - sy[i] * cz_;
+            u[i] = cx * by - cy * bx;
+            v[i] = ax * cy - ay * cx;
+            w[i] = bx * ay - by * ax;
+            any_edge |= (u[i] == 0.0) | (v[i] == 0.0) | (w[i] == 0.0);
+            let det = u[i] + v[i] + w[i];
+            tt[i] = (u[i] * (sz[i] * az_) + v[i] * (sz[i] * bz_) + w[i] * (sz[i] * cz_)) / det;
+        }
+        if any_edge {
+            // Exactly on an edge in single precision: redo those lanes in
+            // double precision, as the reference does.
+            for i in 0..N {
+                if u[i] == 0.0 || v[i] == 0.0 || w[i] == 0.0 {
+                    let s = |q: &[f32; 3], c: usize| q[c] - self.org[c][i];
+                    let (az_, bz_, cz_) = (s(&p[0], kz), s(&p[1], kz), s(&p[2], kz));
+                    let ax = (s(&p[0], kx) - sx[i] * az_) as f64;
+                    let ay = (s(&p[0], ky) - sy[i] * az_) as f64;
+                    let bx = (s(&p[1], kx) - sx[i] * bz_) as f64;
+                    let by = (s(&p[1], ky) - sy[i] * bz_) as f64;
+                    let cx = (s(&p[2], kx) - sx[i] * cz_) as f64;
+                    let cy = (s(&p[2], ky) - sy[i] * cz_) as f64;
+                    u[i] = (cx * by - cy * bx) as f32;
+                    v[i] = (ax * cy - ay * cx) as f32;
+                    w[i] = (bx * ay - by * ax) as f32;
+                    let det = u[i] + v[i] + w[i];
+                    tt[i] =
+                        (u[i] * (sz[i] * az_) + v[i] * (sz[i] * bz_) + w[i] * (sz[i] * cz_)) / det;
+                }
+            }
+        }
+        let any_hit = self.any_hit;
+        for i in 0..N {
+            let neg = (u[i] < 0.0) | (v[i] < 0.0) | (w[i] < 0.0);
+            let pos = (u[i] > 0.0) | (v[i] > 0.0) | (w[i] > 0.0);
+            let det = u[i] + v[i] + w[i];
+            let t = tt[i];
+            let inside = !(neg & pos) & (det != 0.0) & (t > self.tmin) & t.is_finite();
+            let better = (t < self.t[i]) | ((t == self.t[i]) & (id < self.id[i]));
+            let take = inside & better;
+            let inv_det = 1.0 / det;
+            self.t[i] = if take {
+                if any_hit {
+                    f32::NEG_INFINITY
+                } else {
+                    t
+                }
+            } else {
+                self.t[i]
+            };
+            self.id[i] = if take { id } else { self.id[i] };
+            self.voxel[i] = if take { voxel } else { self.voxel[i] };
+            self.tri[i] = if take { tri } else { self.tri[i] };
+            self.u[i] = if take { v[i] * inv_det } else { self.u[i] };
+            self.v[i] = if take { w[i] * inv_det } else { self.v[i] };
+        }
+    }
+
+    /// Nearest hits (or occlusion) of every lane in one voxel's BVH.
+    #[inline(always)]
+    fn voxel(&mut self, shear: &Shear<N>, vox: &PreparedVoxel) {
+        if vox.nodes.is_empty() {
+            return;
+        }
+        let mut stack = [0u32; 64];
+        let mut top = 1usize;
+        while top > 0 {
+            top -= 1;
+            let node = vox.nodes[stack[top] as usize];
+            let (t0, t1) = self.slab(node.min, node.max);
+            let mut any = false;
+            for i in 0..N {
+                any |= t0[i] <= t1[i];
+            }
+            if !any {
+                continue;
+            }
+            if node.count > 0 {
+                for k in node.first..node.first + node.count {
+                    let p = &vox.corners[k as usize];
+                    self.triangle(shear, p, vox.ids[k as usize], vox.id, k);
+                }
+            } else {
+                // Near child last, so it is popped first: order by the
+                // children's centres along the first ray.
+                let left = stack[top] + 1;
+                let right = node.first;
+                let (l, r) = (&vox.nodes[left as usize], &vox.nodes[right as usize]);
+                let mut along = 0.0;
+                for a in 0..3 {
+                    along += ((l.min[a] + l.max[a]) - (r.min[a] + r.max[a])) * self.dir[a][0];
+                }
+                let (near, far) = if along <= 0.0 {
+                    (left, right)
+                } else {
+                    (right, left)
+                };
+                if top + 2 > stack.len() {
+                    // Deeper than any BVH the builder makes (it caps the
+                    // depth); traverse what fits rather than overflow.
+                    stack[top] = near;
+                    top += 1;
+                    continue;
+                }
+                stack[top] = far;
+                stack[top + 1] = near;
+                top += 2;
+            }
+        }
+    }
+}
+
+/// The per-lane constants of the watertight test: the axis permutation
+/// (shared by all lanes of a packet) and the shear.
+#[derive(Clone, Copy, Debug)]
+pub struct Shear<const N: usize> {
+    kx: usize,
+    ky: usize,
+    kz: usize,
+    sx: [f32; N],
+    sy: [f32; N],
+    sz: [f32; N],
+}
+
+/// The permutation the reference test uses for one direction.
+fn permutation(d: [f32; 3]) -> (usize, usize, usize) {
+    let ad = [d[0].abs(), d[1].abs(), d[2].abs()];
+    let kz = if ad[0] >= ad[1] && ad[0] >= ad[2] {
+        0
+    } else if ad[1] >= ad[2] {
+        1
+    } else {
+        2
+    };
+    let mut kx = (kz + 1) % 3;
+    let mut ky = (kx + 1) % 3;
+    if d[kz] < 0.0 {
+        std::mem::swap(&mut kx, &mut ky);
+    }
+    (kx, ky, kz)
+}
+
+impl<const N: usize> Shear<N> {
+    /// The shear for the packet, or `None` when its lanes need different
+    /// permutations (the caller then traces lane by lane).
+    #[inline(always)]
+    fn new(p: &Packet<N>) -> Option<Shear<N>> {
+        let lane = |i: usize| [p.dir[0][i], p.dir[1][i], p.dir[2][i]];
+        let (kx, ky, kz) = permutation(lane(0));
+        for i in 1..N {
+            if permutation(lane(i)) != (kx, ky, kz) {
+                return None;
+            }
+        }
+        let mut s = Shear {
+            kx,
+            ky,
+            kz,
+            sx: [0.0; N],
+            sy: [0.0; N],
+            sz: [0.0; N],
+        };
+        for i in 0..N {
+            s.sz[i] = 1.0 / p.dir[kz][i];
+            s.sx[i] = p.dir[kx][i] * s.sz[i];
+            s.sy[i] = p.dir[ky][i] * s.sz[i];
+        }
+        Some(s)
+    }
+}
+
+/// What [`Traversal::run`] stopped at.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Step {
+    /// Every lane has its final answer.
+    Done,
+    /// The packet needs this voxel; call `run` again once it is resident.
+    Missing(u32),
+}
+
+/// A BSP node still to visit, with each lane's interval in its cell.
+#[derive(Clone, Debug)]
+struct Pending<const N: usize> {
+    node: u32,
+    t0: [f32; N],
+    t1: [f32; N],
+}
+
+/// The resumable state of one packet's traversal.
+#[derive(Clone, Debug)]
+pub struct Traversal<const N: usize> {
+    stack: Vec<Pending<N>>,
+    started: bool,
+    /// Voxels entered (for statistics).
+    pub voxels_visited: u32,
+}
+
+impl<const N: usize> Default for Traversal<N> {
+    fn default() -> Self {
+        Traversal {
+            stack: Vec::with_capacity(64),
+            started: false,
+            voxels_visited: 0,
+        }
+    }
+}
+
+impl<const N: usize> Traversal<N> {
+    /// Forgets everything, to trace a new packet.
+    pub fn reset(&mut self) {
+        self.stack.clear();
+        self.started = false;
+        self.voxels_visited = 0;
+    }
+
+    /// Traverses until the packet is done or needs a voxel `source` lacks.
+    #[inline(always)]
+    pub fn run(
+        &mut self,
+        packet: &mut Packet<N>,
+        top: &TopLevel,
+        source: &dyn VoxelSource,
+    ) -> Step {
+        let shear = Shear::new(packet);
+        if !self.started {
+            self.started = true;
+            let (t0, t1) = packet.slab(top.root.min, top.root.max);
+            self.stack.push(Pending { node: 0, t0, t1 });
+        }
+        while let Some(e) = self.stack.pop() {
+            let mut live = false;
+            for i in 0..N {
+                live |= (e.t0[i] <= e.t1[i]) & (e.t0[i] <= packet.t[i]);
+            }
+            if !live {
+                continue;
+            }
+            match top.nodes[e.node as usize] {
+                TopNode::Leaf { voxel: None } => {}
+                TopNode::Leaf { voxel: Some(id) } => {
+                    let Some(vox) = source.voxel(id) else {
+                        self.stack.push(e);
+                        return Step::Missing(id);
+                    };
+                    self.voxels_visited += 1;
+                    match &shear {
+                        Some(s) => packet.voxel(s, &vox),
+                        None => lane_by_lane(packet, &vox),
+                    }
+                }
+                TopNode::Split {
+                    axis,
+                    pos,
+                    left,
+                    right,
+                } => {
+                    let a = axis as usize;
+                    let mut l = Pending {
+                        node: left,
+                        t0: e.t0,
+                        t1: e.t1,
+                    };
+                    let mut r = Pending {
+                        node: right,
+                        t0: e.t0,
+                        t1: e.t1,
+                    };
+                    let (mut l_live, mut r_live) = (false, false);
+                    for i in 0..N {
+                        let ts = (pos - packet.org[a][i]) * packet.inv[a][i];
+                        let ts_hi = ts + ts.abs() * WIDEN;
+                        let ts_lo = ts - ts.abs() * WIDEN;
+                        let forward = packet.dir[a][i] >= 0.0;
+                        // Forward rays meet the left cell first.
+                        let near_end = if ts_hi < e.t1[i] { ts_hi } else { e.t1[i] };
+                        let far_start = if ts_lo > e.t0[i] { ts_lo } else { e.t0[i] };
+                        l.t1[i] = if forward { near_end } else { e.t1[i] };
+                        l.t0[i] = if forward { e.t0[i] } else { far_start };
+                        r.t0[i] = if forward { far_start } else { e.t0[i] };
+                        r.t1[i] = if forward { e.t1[i] } else { near_end };
+                        l_live |= (l.t0[i] <= l.t1[i]) & (l.t0[i] <= packet.t[i]);
+                        r_live |= (r.t0[i] <= r.t1[i]) & (r.t0[i] <= packet.t[i]);
+                    }
+                    let left_first = packet.dir[a][0] >= 0.0;
+                    let (near, near_live, far, far_live) = if left_first {
+                        (l, l_live, r, r_live)
+                    } else {
+                        (r, r_live, l, l_live)
+                    };
+                    if far_live {
+                        self.stack.push(far);
+                    }
+                    if near_live {
+                        self.stack.push(near);
+                    }
+                }
+            }
+        }
+        Step::Done
+    }
+}
+
+/// A packet whose lanes need different shears: each lane alone, through
+/// a one-lane packet (rare: only where a packet straddles a diagonal).
+#[inline(always)]
+fn lane_by_lane<const N: usize>(packet: &mut Packet<N>, vox: &PreparedVoxel) {
+    for i in 0..N {
+        let o = [Vec3::new(
+            packet.org[0][i],
+            packet.org[1][i],
+            packet.org[2][i],
+        )];
+        let d = [Vec3::new(
+            packet.dir[0][i],
+            packet.dir[1][i],
+            packet.dir[2][i],
+        )];
+        let mut one = Packet::<1>::new(&o, &d, packet.tmin, packet.t[i]);
+        one.any_hit = packet.any_hit;
+        one.id[0] = packet.id[i];
+        one.voxel[0] = packet.voxel[i];
+        one.tri[0] = packet.tri[i];
+        one.u[0] = packet.u[i];
+        one.v[0] = packet.v[i];
+        let shear = Shear::new(&one).expect("one lane has one permutation");
+        one.voxel(&shear, vox);
+        packet.t[i] = one.t[0];
+        packet.id[i] = one.id[0];
+        packet.voxel[i] = one.voxel[0];
+        packet.tri[i] = one.tri[0];
+        packet.u[i] = one.u[0];
+        packet.v[i] = one.v[0];
+    }
+}
