@@ -1,0 +1,320 @@
+//! The kernel against brute force: every pixel's primitive id and depth,
+//! for every instruction set this CPU has, with and without suspension.
+
+use dray_scene::db::Database;
+use dray_scene::generate::{generate_plant, PlantParams};
+use dray_scene::geometry::{closer, intersect_triangle, Hit, Ray};
+use dray_scene::import::{import_model, ImportOptions};
+use dray_scene::preprocess::{preprocess, PreprocessOptions};
+use dray_scene::progress::Progress;
+use dray_scene::rng::Rng;
+use dray_trace::camera::Camera;
+use dray_trace::packet::{Packet, Step, Traversal};
+use dray_trace::render::{render, Frame, Isa, RenderSettings};
+use dray_trace::scene::{PreparedVoxel, ResidentSource, TopLevel, VoxelSource};
+use glam::Vec3;
+use std::collections::{HashSet, VecDeque};
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
+
+struct Model {
+    _dir: tempfile::TempDir,
+    tris: Vec<[Vec3; 3]>,
+    top: TopLevel,
+    source: ResidentSource,
+    db: Database,
+}
+
+fn load(model: &Path, dir: tempfile::TempDir, max_triangles: u32) -> Model {
+    let mut tris = Vec::new();
+    import_model(model, 0, &ImportOptions::default(), &mut |t| {
+        tris.push(t.positions);
+        Ok(())
+    })
+    .unwrap();
+    let db_path = dir.path().join("db");
+    preprocess(
+        &PreprocessOptions {
+            max_triangles,
+            ..PreprocessOptions::new(vec![model.to_path_buf()], db_path.clone())
+        },
+        &Progress::hidden(),
+    )
+    .unwrap();
+    let db = Database::open(&db_path).unwrap();
+    Model {
+        _dir: dir,
+        tris,
+        top: TopLevel::from_manifest(&db.manifest),
+        source: ResidentSource::load(&db).unwrap(),
+        db,
+    }
+}
+
+fn plant(triangles: u64) -> Model {
+    let dir = tempfile::tempdir().unwrap();
+    let model = dir.path().join("plant.ply");
+    generate_plant(&PlantParams { triangles, seed: 5 }, &model, &mut |_| {}).unwrap();
+    load(&model, dir, 512)
+}
+
+fn shared_model(name: &str) -> Model {
+    let dir = tempfile::tempdir().unwrap();
+    let src = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../../shared/models")
+        .join(format!("{name}.ply.zst"));
+    let out = dir.path().join(format!("{name}.ply"));
+    let input = std::fs::File::open(&src).unwrap_or_else(|e| panic!("{}: {e}", src.display()));
+    zstd::stream::copy_decode(input, std::fs::File::create(&out).unwrap()).unwrap();
+    load(&out, dir, 2048)
+}
+
+fn brute_force(tris: &[[Vec3; 3]], ray: &Ray) -> Option<Hit> {
+    let mut best: Option<Hit> = None;
+    for (i, p) in tris.iter().enumerate() {
+        let limit = best.map_or(f32::INFINITY, |h| f32::from_bits(h.t.to_bits() + 1));
+        if let Some(t) = intersect_triangle(ray, p, 0.0, limit) {
+            best = closer(best, t, i as u32);
+        }
+    }
+    best
+}
+
+fn isas() -> Vec<Isa> {
+    let mut v = vec![Isa::Portable];
+    match Isa::detect() {
+        Isa::Avx512 => v.extend([Isa::Avx2, Isa::Avx512]),
+        Isa::Avx2 => v.push(Isa::Avx2),
+        Isa::Portable => {}
+    }
+    v
+}
+
+fn settings(isa: Isa, m: &Model) -> RenderSettings {
+    RenderSettings {
+        shade: false,
+        shadows: false,
+        light: Vec3::new(0.3, 1.0, 0.2),
+        threads: 2,
+        isa,
+        scene_diagonal: m.db.manifest.model_bounds.diagonal(),
+    }
+}
+
+/// Every pixel equals brute force exactly: same id, same distance bits.
+fn check_against_brute_force(m: &Model, camera: &Camera, frame: &Frame, what: &str) {
+    let basis = camera.basis();
+    let mut hits = 0;
+    for y in 0..camera.height {
+        for x in 0..camera.width {
+            let k = (y * camera.width + x) as usize;
+            let expected = brute_force(&m.tris, &basis.ray(x, y));
+            let got = (frame.primid[k] != u32::MAX).then(|| Hit {
+                t: frame.depth[k],
+                id: frame.primid[k],
+            });
+            assert_eq!(got, expected, "{what}: pixel ({x}, {y})");
+            hits += got.is_some() as usize;
+        }
+    }
+    let pixels = (camera.width * camera.height) as usize;
+    assert!(
+        hits > pixels / 10,
+        "{what}: only {hits} of {pixels} pixels hit"
+    );
+}
+
+fn cameras(m: &Model, w: u32, h: u32) -> Vec<Camera> {
+    let b = m.db.manifest.model_bounds;
+    let outside = Camera::default_for(&b, w, h);
+    let c = b.center();
+    let e = b.extent();
+    vec![
+        outside,
+        // Close up, looking across the model from inside its box.
+        Camera {
+            eye: c + Vec3::new(-0.3 * e.x, 0.1 * e.y, 0.2 * e.z),
+            look: c + Vec3::new(0.4 * e.x, 0.0, -0.3 * e.z),
+            ..outside
+        },
+        // Straight down, axis-aligned rays (the watertight test's edge case).
+        Camera {
+            eye: c + Vec3::new(0.0, 1.2 * e.max_element(), 0.0),
+            look: c,
+            up: Vec3::Z,
+            ..outside
+        },
+    ]
+}
+
+#[test]
+fn plant_pixels_equal_brute_force_on_every_isa() {
+    let m = plant(20_000);
+    for isa in isas() {
+        for (k, cam) in cameras(&m, 96, 72).iter().enumerate() {
+            let frame = render(&m.top, &m.source, cam, &settings(isa, &m)).unwrap();
+            check_against_brute_force(&m, cam, &frame, &format!("{isa:?} camera {k}"));
+        }
+    }
+}
+
+#[test]
+fn bunny_pixels_equal_brute_force() {
+    let m = shared_model("stanford-bunny");
+    let isa = Isa::detect();
+    for (k, cam) in cameras(&m, 80, 60).iter().enumerate() {
+        let frame = render(&m.top, &m.source, cam, &settings(isa, &m)).unwrap();
+        check_against_brute_force(&m, cam, &frame, &format!("bunny camera {k}"));
+    }
+}
+
+/// A source that holds only the voxels delivered so far and records what
+/// was asked for.
+struct Delayed<'a> {
+    all: &'a ResidentSource,
+    resident: Mutex<HashSet<u32>>,
+}
+
+impl VoxelSource for Delayed<'_> {
+    fn voxel(&self, id: u32) -> Option<Arc<PreparedVoxel>> {
+        if self.resident.lock().unwrap().contains(&id) {
+            self.all.voxel(id)
+        } else {
+            None
+        }
+    }
+}
+
+/// Packets suspended on missing voxels, resumed in random order as voxels
+/// arrive one by one in random order, end with bit-identical hits.
+#[test]
+fn suspension_in_random_order_gives_identical_hits() {
+    let m = plant(30_000);
+    let cam = cameras(&m, 64, 48)[1];
+    let reference = render(&m.top, &m.source, &cam, &settings(Isa::Portable, &m)).unwrap();
+    let basis = cam.basis();
+    let delayed = Delayed {
+        all: &m.source,
+        resident: Mutex::new(HashSet::new()),
+    };
+    let mut rng = Rng::new(77);
+    // Every 4x2 block of the image as a packet.
+    let mut waiting: Vec<(u32, Traversal<8>, Packet<8>, [(u32, u32); 8])> = Vec::new();
+    let mut done: Vec<(Packet<8>, [(u32, u32); 8])> = Vec::new();
+    let mut ready: VecDeque<(Traversal<8>, Packet<8>, [(u32, u32); 8])> = VecDeque::new();
+    for by in (0..cam.height).step_by(2) {
+        for bx in (0..cam.width).step_by(4) {
+            let mut px = [(0, 0); 8];
+            let mut dirs = [Vec3::ZERO; 8];
+            for i in 0..8 {
+                px[i] = (bx + i as u32 % 4, by + i as u32 / 4);
+                dirs[i] = basis.direction(px[i].0, px[i].1);
+            }
+            let packet = Packet::<8>::new(&[basis.eye; 8], &dirs, 0.0, f32::INFINITY);
+            ready.push_back((Traversal::default(), packet, px));
+        }
+    }
+    let mut suspensions = 0;
+    let mut requested: Vec<u32> = Vec::new();
+    loop {
+        while let Some((mut trav, mut packet, px)) = ready.pop_front() {
+            match trav.run(&mut packet, &m.top, &delayed) {
+                Step::Done => done.push((packet, px)),
+                Step::Missing(id) => {
+                    suspensions += 1;
+                    if !requested.contains(&id) {
+                        requested.push(id);
+                    }
+                    waiting.push((id, trav, packet, px));
+                }
+            }
+        }
+        if requested.is_empty() {
+            break;
+        }
+        // Deliver one requested voxel, chosen at random, and resume its
+        // packets in random order.
+        let id = requested.swap_remove(rng.below(requested.len() as u32) as usize);
+        delayed.resident.lock().unwrap().insert(id);
+        let mut resumed: Vec<_> = Vec::new();
+        let mut k = 0;
+        while k < waiting.len() {
+            if waiting[k].0 == id {
+                resumed.push(waiting.swap_remove(k));
+            } else {
+                k += 1;
+            }
+        }
+        while !resumed.is_empty() {
+            let (_, trav, packet, px) =
+                resumed.swap_remove(rng.below(resumed.len() as u32) as usize);
+            ready.push_back((trav, packet, px));
+        }
+    }
+    assert!(waiting.is_empty());
+    assert!(
+        suspensions > 100,
+        "only {suspensions} suspensions: the test is too easy"
+    );
+    for (packet, px) in done {
+        for (i, &(x, y)) in px.iter().enumerate() {
+            let k = (y * cam.width + x) as usize;
+            assert_eq!(packet.id[i], reference.primid[k], "pixel ({x}, {y})");
+            let t = if packet.hit(i) {
+                packet.t[i]
+            } else {
+                f32::INFINITY
+            };
+            assert_eq!(
+                t.to_bits(),
+                reference.depth[k].to_bits(),
+                "pixel ({x}, {y})"
+            );
+        }
+    }
+}
+
+/// Shadow (any-hit) packets agree with brute force: a lane is occluded
+/// exactly when some triangle lies on its ray beyond `tmin`.
+#[test]
+fn any_hit_packets_equal_brute_force() {
+    let m = plant(20_000);
+    let b = m.db.manifest.model_bounds;
+    let mut rng = Rng::new(3);
+    let mut occluded = 0;
+    for _ in 0..300 {
+        let mut origins = [Vec3::ZERO; 8];
+        let mut dirs = [Vec3::ZERO; 8];
+        let base = Vec3::new(
+            rng.range(b.min[0], b.max[0]),
+            rng.range(b.min[1], b.max[1]),
+            rng.range(b.min[2], b.max[2]),
+        );
+        let light = Vec3::new(rng.range(-1.0, 1.0), 1.0, rng.range(-1.0, 1.0)).normalize();
+        for i in 0..8 {
+            origins[i] = base + Vec3::new(rng.range(-1.0, 1.0), 0.0, rng.range(-1.0, 1.0));
+            dirs[i] = light;
+        }
+        let tmin = 1e-4 * b.diagonal();
+        let mut packet = Packet::<8>::new(&origins, &dirs, tmin, f32::INFINITY);
+        packet.any_hit = true;
+        let mut trav = Traversal::<8>::default();
+        assert_eq!(trav.run(&mut packet, &m.top, &m.source), Step::Done);
+        for i in 0..8 {
+            let ray = Ray {
+                origin: origins[i],
+                dir: dirs[i],
+            };
+            let blocked = m
+                .tris
+                .iter()
+                .any(|p| intersect_triangle(&ray, p, tmin, f32::INFINITY).is_some());
+            assert_eq!(packet.occluded(i), blocked, "lane {i} of {ray:?}");
+            occluded += blocked as usize;
+        }
+    }
+    assert!(
+        occluded > 100 && occluded < 2300,
+        "{occluded} of 2400 occluded"
+    );
+}
