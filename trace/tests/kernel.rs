@@ -199,9 +199,10 @@ fn suspension_in_random_order_gives_identical_hits() {
     };
     let mut rng = Rng::new(77);
     // Every 4x2 block of the image as a packet.
-    let mut waiting: Vec<(u32, Traversal<8>, Packet<8>, [(u32, u32); 8])> = Vec::new();
-    let mut done: Vec<(Packet<8>, [(u32, u32); 8])> = Vec::new();
-    let mut ready: VecDeque<(Traversal<8>, Packet<8>, [(u32, u32); 8])> = VecDeque::new();
+    type Pixels = [(u32, u32); 8];
+    let mut waiting: Vec<(u32, Traversal<8>, Packet<8>, Pixels)> = Vec::new();
+    let mut done: Vec<(Packet<8>, Pixels)> = Vec::new();
+    let mut ready: VecDeque<(Traversal<8>, Packet<8>, Pixels)> = VecDeque::new();
     for by in (0..cam.height).step_by(2) {
         for bx in (0..cam.width).step_by(4) {
             let mut px = [(0, 0); 8];
