@@ -12,3 +12,4 @@ pub mod image;
 pub mod packet;
 pub mod render;
 pub mod scene;
+pub mod tile;
