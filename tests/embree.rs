@@ -12,7 +12,11 @@
 //! Agreement: primitive ids on at least 99.9 % of the pixels (Embree's triangle
 //! test is not watertight, so a few pixels on triangle edges may differ), and
 //! where both hit the same triangle, a relative depth difference of at most
-//! 1e-4. Pixels where both hit but different triangles are among the 0.1 %.
+//! 1e-4. Pixels where both hit but different triangles are among the 0.1 %,
+//! except ties: when the pixel's ray (recomputed in f64) hits both triangles
+//! at the same distance, both answers are right and the pixel agrees. The
+//! living room has overlapping coplanar triangles, where Embree and dray pick
+//! different ones on about 1.5 % of the pixels of its default view.
 //!
 //! Needs Embree (`apt-get install -y libembree-dev`, as `.ci/run` does): without
 //! it these tests fail, they do not skip.
