@@ -9,7 +9,7 @@ use dray_scene::generate::{generate_plant, PlantParams};
 use dray_scene::preprocess::{self, preprocess, PreprocessOptions};
 use dray_scene::progress::Progress;
 use dray_trace::camera::Camera;
-use dray_trace::render::{render_repeated, Isa, RenderSettings};
+use dray_trace::render::{render_repeated, Isa, ReflectRule, RenderSettings};
 use dray_trace::scene::{ResidentSource, TopLevel};
 use glam::Vec3;
 use std::path::{Path, PathBuf};
@@ -124,6 +124,19 @@ struct RenderArgs {
     /// Direction towards the distant light.
     #[arg(long, value_parser = parse_vec3, default_value = "0.3,1,0.2")]
     light: Vec3,
+    /// Mirror bounces on reflective surfaces.
+    #[arg(long, default_value_t = 0)]
+    reflections: u32,
+    /// Which surfaces reflect: all, ids:A-B (original triangle ids, B
+    /// exclusive) or color:R,G,B (vertex color).
+    #[arg(long, default_value = "all")]
+    reflective: ReflectRule,
+    /// Share of the light a reflective surface mirrors (0-1).
+    #[arg(long, default_value_t = 0.6)]
+    reflectance: f32,
+    /// Color each voxel differently (the paper's Figure 5).
+    #[arg(long)]
+    voxel_colors: bool,
     /// Render threads (default: every core).
     #[arg(long, default_value_t = 0)]
     threads: usize,
@@ -382,13 +395,20 @@ fn render(a: &RenderArgs) -> Result<()> {
     } else {
         a.threads
     };
+    if !(0.0..=1.0).contains(&a.reflectance) {
+        bail!("--reflectance {} is not between 0 and 1", a.reflectance);
+    }
     let settings = RenderSettings {
-        shade: a.out.is_some() || a.shadows,
+        shade: a.out.is_some() || a.shadows || a.reflections > 0 || a.voxel_colors,
         shadows: a.shadows,
         light: a.light,
         threads,
         isa: Isa::detect(),
         scene_diagonal: bounds.diagonal(),
+        reflections: a.reflections,
+        reflective: a.reflective.clone(),
+        reflectance: a.reflectance,
+        voxel_colors: a.voxel_colors,
     };
     let (frame, mut seconds) = render_repeated(&top, &source, &camera, &settings, a.repeat)
         .map_err(|id| anyhow::anyhow!("voxel {id} was not loaded"))?;
@@ -403,7 +423,7 @@ fn render(a: &RenderArgs) -> Result<()> {
     }
     seconds.sort_by(f64::total_cmp);
     let s = &frame.stats;
-    let rays = s.primary_rays + s.shadow_rays;
+    let rays = s.primary_rays + s.shadow_rays + s.reflection_rays;
     let best = rays as f64 / seconds[0] / 1e6;
     let median = rays as f64 / seconds[seconds.len() / 2] / 1e6;
     let shadow_mrays = (s.shadow_seconds > 0.0)
@@ -417,7 +437,11 @@ fn render(a: &RenderArgs) -> Result<()> {
         settings.isa.lanes(),
         best,
         median,
-        if a.shadows { format!(", {} shadow rays", s.shadow_rays) } else { String::new() },
+        if a.shadows || a.reflections > 0 {
+            format!(", {} shadow and {} reflection rays", s.shadow_rays, s.reflection_rays)
+        } else {
+            String::new()
+        },
         100.0 * hit_fraction,
         s.voxels_visited as f64 / (s.primary_rays as f64 / settings.isa.lanes() as f64),
         db.manifest.voxels.len(),
@@ -430,6 +454,7 @@ fn render(a: &RenderArgs) -> Result<()> {
             "rays": rays,
             "primary_rays": s.primary_rays,
             "shadow_rays": s.shadow_rays,
+            "reflection_rays": s.reflection_rays,
             "shadow_mrays_per_s": shadow_mrays,
             "occluded_fraction": (s.shadow_rays > 0).then(|| s.occluded as f64 / s.shadow_rays as f64),
             "threads": threads,

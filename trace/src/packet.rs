@@ -115,65 +115,20 @@ impl<const N: usize> Packet<N> {
         (t0, t1)
     }
 
-    /// Intersects every lane with one triangle (the watertight test of
-    /// `dray_scene::geometry::intersect_triangle`, operation for operation,
-    /// so distances are bit-identical to the reference) and keeps the
-    /// better of the hit and the lane's current one.
+    /// Keeps, per lane, the better of the current hit and the candidate
+    /// whose scaled barycentrics are (`u`, `v`, `w`) and distance `tt`.
     #[inline(always)]
-    fn triangle(&mut self, shear: &Shear<N>, p: &[[f32; 3]; 3], id: u32, voxel: u32, tri: u32) {
-        let Shear {
-            kx,
-            ky,
-            kz,
-            sx,
-            sy,
-            sz,
-        } = shear;
-        let (kx, ky, kz) = (*kx, *ky, *kz);
-        let mut u = [0.0f32; N];
-        let mut v = [0.0f32; N];
-        let mut w = [0.0f32; N];
-        let mut tt = [0.0f32; N];
-        let mut any_edge = false;
-        for i in 0..N {
-            let az_ = p[0][kz] - self.org[kz][i];
-            let bz_ = p[1][kz] - self.org[kz][i];
-            let cz_ = p[2][kz] - self.org[kz][i];
-            let ax = (p[0][kx] - self.org[kx][i]) - sx[i] * az_;
-            let ay = (p[0][ky] - self.org[ky][i]) - sy[i] * az_;
-            let bx = (p[1][kx] - self.org[kx][i]) - sx[i] * bz_;
-            let by = (p[1][ky] - self.org[ky][i]) - sy[i] * bz_;
-            let cx = (p[2][kx] - self.org[kx][i]) - sx[i] * cz_;
-            let cy = (p[2][ky] - self.org[ky][i]) - sy[i] * cz_;
-            u[i] = cx * by - cy * bx;
-            v[i] = ax * cy - ay * cx;
-            w[i] = bx * ay - by * ax;
-            any_edge |= (u[i] == 0.0) | (v[i] == 0.0) | (w[i] == 0.0);
-            let det = u[i] + v[i] + w[i];
-            tt[i] = (u[i] * (sz[i] * az_) + v[i] * (sz[i] * bz_) + w[i] * (sz[i] * cz_)) / det;
-        }
-        if any_edge {
-            // Exactly on an edge in single precision: redo those lanes in
-            // double precision, as the reference does.
-            for i in 0..N {
-                if u[i] == 0.0 || v[i] == 0.0 || w[i] == 0.0 {
-                    let s = |q: &[f32; 3], c: usize| q[c] - self.org[c][i];
-                    let (az_, bz_, cz_) = (s(&p[0], kz), s(&p[1], kz), s(&p[2], kz));
-                    let ax = (s(&p[0], kx) - sx[i] * az_) as f64;
-                    let ay = (s(&p[0], ky) - sy[i] * az_) as f64;
-                    let bx = (s(&p[1], kx) - sx[i] * bz_) as f64;
-                    let by = (s(&p[1], ky) - sy[i] * bz_) as f64;
-                    let cx = (s(&p[2], kx) - sx[i] * cz_) as f64;
-                    let cy = (s(&p[2], ky) - sy[i] * cz_) as f64;
-                    u[i] = (cx * by - cy * bx) as f32;
-                    v[i] = (ax * cy - ay * cx) as f32;
-                    w[i] = (bx * ay - by * ax) as f32;
-                    let det = u[i] + v[i] + w[i];
-                    tt[i] =
-                        (u[i] * (sz[i] * az_) + v[i] * (sz[i] * bz_) + w[i] * (sz[i] * cz_)) / det;
-                }
-            }
-        }
+    #[allow(clippy::too_many_arguments)]
+    fn accept(
+        &mut self,
+        u: &[f32; N],
+        v: &[f32; N],
+        w: &[f32; N],
+        tt: &[f32; N],
+        id: u32,
+        voxel: u32,
+        tri: u32,
+    ) {
         let any_hit = self.any_hit;
         for i in 0..N {
             let neg = (u[i] < 0.0) | (v[i] < 0.0) | (w[i] < 0.0);
@@ -184,15 +139,8 @@ impl<const N: usize> Packet<N> {
             let better = (t < self.t[i]) | ((t == self.t[i]) & (id < self.id[i]));
             let take = inside & better;
             let inv_det = 1.0 / det;
-            self.t[i] = if take {
-                if any_hit {
-                    f32::NEG_INFINITY
-                } else {
-                    t
-                }
-            } else {
-                self.t[i]
-            };
+            let t_new = if any_hit { f32::NEG_INFINITY } else { t };
+            self.t[i] = if take { t_new } else { self.t[i] };
             self.id[i] = if take { id } else { self.id[i] };
             self.voxel[i] = if take { voxel } else { self.voxel[i] };
             self.tri[i] = if take { tri } else { self.tri[i] };
@@ -203,7 +151,7 @@ impl<const N: usize> Packet<N> {
 
     /// Nearest hits (or occlusion) of every lane in one voxel's BVH.
     #[inline(always)]
-    fn voxel(&mut self, shear: &Shear<N>, vox: &PreparedVoxel) {
+    fn voxel<S: TriangleTest<N>>(&mut self, shear: &S, vox: &PreparedVoxel) {
         if vox.nodes.is_empty() {
             return;
         }
@@ -223,7 +171,8 @@ impl<const N: usize> Packet<N> {
             if node.count > 0 {
                 for k in node.first..node.first + node.count {
                     let p = &vox.corners[k as usize];
-                    self.triangle(shear, p, vox.ids[k as usize], vox.id, k);
+                    let (u, v, w, t) = shear.test(self, p);
+                    self.accept(&u, &v, &w, &t, vox.ids[k as usize], vox.id, k);
                 }
             } else {
                 // Near child last, so it is popped first: order by the
@@ -255,13 +204,39 @@ impl<const N: usize> Packet<N> {
     }
 }
 
-/// The per-lane constants of the watertight test: the axis permutation
-/// (shared by all lanes of a packet) and the shear.
+/// The watertight test (`dray_scene::geometry::intersect_triangle`,
+/// operation for operation, so distances are bit-identical to the
+/// reference) for every lane of a packet against one triangle: scaled
+/// barycentrics u, v, w and distances.
+pub trait TriangleTest<const N: usize> {
+    #[allow(clippy::type_complexity)]
+    fn test(
+        &self,
+        p: &Packet<N>,
+        corners: &[[f32; 3]; 3],
+    ) -> ([f32; N], [f32; N], [f32; N], [f32; N]);
+}
+
+/// The per-lane shear of the watertight test, for a packet whose lanes all
+/// share one axis permutation (nearly every coherent packet).
 #[derive(Clone, Copy, Debug)]
 pub struct Shear<const N: usize> {
     kx: usize,
     ky: usize,
     kz: usize,
+    sx: [f32; N],
+    sy: [f32; N],
+    sz: [f32; N],
+}
+
+/// The shear for a packet whose lanes need different permutations
+/// (reflection rays, packets across a diagonal): each lane picks its
+/// components with selects, still in SIMD.
+#[derive(Clone, Copy, Debug)]
+pub struct MixedShear<const N: usize> {
+    k: [[u8; N]; 3],
+    /// The origin's components in each lane's permuted order.
+    o: [[f32; N]; 3],
     sx: [f32; N],
     sy: [f32; N],
     sz: [f32; N],
@@ -285,32 +260,153 @@ fn permutation(d: [f32; 3]) -> (usize, usize, usize) {
     (kx, ky, kz)
 }
 
-impl<const N: usize> Shear<N> {
-    /// The shear for the packet, or `None` when its lanes need different
-    /// permutations (the caller then traces lane by lane).
+/// The packet's shear: uniform when all lanes agree.
+enum AnyShear<const N: usize> {
+    Uniform(Shear<N>),
+    Mixed(MixedShear<N>),
+}
+
+impl<const N: usize> AnyShear<N> {
     #[inline(always)]
-    fn new(p: &Packet<N>) -> Option<Shear<N>> {
+    fn new(p: &Packet<N>) -> AnyShear<N> {
         let lane = |i: usize| [p.dir[0][i], p.dir[1][i], p.dir[2][i]];
-        let (kx, ky, kz) = permutation(lane(0));
-        for i in 1..N {
-            if permutation(lane(i)) != (kx, ky, kz) {
-                return None;
-            }
+        let mut perms = [(0usize, 0usize, 0usize); N];
+        for (i, perm) in perms.iter_mut().enumerate() {
+            *perm = permutation(lane(i));
         }
-        let mut s = Shear {
-            kx,
-            ky,
-            kz,
+        let (kx, ky, kz) = perms[0];
+        if perms.iter().all(|&q| q == (kx, ky, kz)) {
+            let mut s = Shear {
+                kx,
+                ky,
+                kz,
+                sx: [0.0; N],
+                sy: [0.0; N],
+                sz: [0.0; N],
+            };
+            for i in 0..N {
+                s.sz[i] = 1.0 / p.dir[kz][i];
+                s.sx[i] = p.dir[kx][i] * s.sz[i];
+                s.sy[i] = p.dir[ky][i] * s.sz[i];
+            }
+            return AnyShear::Uniform(s);
+        }
+        let mut m = MixedShear {
+            k: [[0; N]; 3],
+            o: [[0.0; N]; 3],
             sx: [0.0; N],
             sy: [0.0; N],
             sz: [0.0; N],
         };
-        for i in 0..N {
-            s.sz[i] = 1.0 / p.dir[kz][i];
-            s.sx[i] = p.dir[kx][i] * s.sz[i];
-            s.sy[i] = p.dir[ky][i] * s.sz[i];
+        for (i, &(kx, ky, kz)) in perms.iter().enumerate() {
+            m.k[0][i] = kx as u8;
+            m.k[1][i] = ky as u8;
+            m.k[2][i] = kz as u8;
+            for (slot, k) in [kx, ky, kz].into_iter().enumerate() {
+                m.o[slot][i] = p.org[k][i];
+            }
+            m.sz[i] = 1.0 / p.dir[kz][i];
+            m.sx[i] = p.dir[kx][i] * m.sz[i];
+            m.sy[i] = p.dir[ky][i] * m.sz[i];
         }
-        Some(s)
+        AnyShear::Mixed(m)
+    }
+}
+
+/// The reference's double-precision redo for a lane exactly on an edge.
+#[inline(never)]
+#[allow(clippy::too_many_arguments)]
+fn edge_lane(c: [[f32; 3]; 3], shear: (f32, f32, f32)) -> (f32, f32, f32, f32) {
+    // c[corner] = [x, y, z] of the corner relative to the origin, already
+    // permuted to (kx, ky, kz).
+    let (sx, sy, sz) = shear;
+    let ax = (c[0][0] - sx * c[0][2]) as f64;
+    let ay = (c[0][1] - sy * c[0][2]) as f64;
+    let bx = (c[1][0] - sx * c[1][2]) as f64;
+    let by = (c[1][1] - sy * c[1][2]) as f64;
+    let cx = (c[2][0] - sx * c[2][2]) as f64;
+    let cy = (c[2][1] - sy * c[2][2]) as f64;
+    let u = (cx * by - cy * bx) as f32;
+    let v = (ax * cy - ay * cx) as f32;
+    let w = (bx * ay - by * ax) as f32;
+    let det = u + v + w;
+    let t = (u * (sz * c[0][2]) + v * (sz * c[1][2]) + w * (sz * c[2][2])) / det;
+    (u, v, w, t)
+}
+
+/// The single-precision core shared by both shears: corner components
+/// relative to the origin, permuted, per lane.
+#[inline(always)]
+#[allow(clippy::type_complexity)]
+fn core<const N: usize>(
+    rel: impl Fn(usize, usize, usize) -> f32,
+    sx: &[f32; N],
+    sy: &[f32; N],
+    sz: &[f32; N],
+) -> ([f32; N], [f32; N], [f32; N], [f32; N]) {
+    let mut u = [0.0f32; N];
+    let mut v = [0.0f32; N];
+    let mut w = [0.0f32; N];
+    let mut tt = [0.0f32; N];
+    let mut any_edge = false;
+    for i in 0..N {
+        // rel(i, corner, slot): slot 0, 1, 2 = kx, ky, kz.
+        let (az, bz, cz) = (rel(i, 0, 2), rel(i, 1, 2), rel(i, 2, 2));
+        let ax = rel(i, 0, 0) - sx[i] * az;
+        let ay = rel(i, 0, 1) - sy[i] * az;
+        let bx = rel(i, 1, 0) - sx[i] * bz;
+        let by = rel(i, 1, 1) - sy[i] * bz;
+        let cx = rel(i, 2, 0) - sx[i] * cz;
+        let cy = rel(i, 2, 1) - sy[i] * cz;
+        u[i] = cx * by - cy * bx;
+        v[i] = ax * cy - ay * cx;
+        w[i] = bx * ay - by * ax;
+        any_edge |= (u[i] == 0.0) | (v[i] == 0.0) | (w[i] == 0.0);
+        let det = u[i] + v[i] + w[i];
+        tt[i] = (u[i] * (sz[i] * az) + v[i] * (sz[i] * bz) + w[i] * (sz[i] * cz)) / det;
+    }
+    if any_edge {
+        for i in 0..N {
+            if u[i] == 0.0 || v[i] == 0.0 || w[i] == 0.0 {
+                let c = [0, 1, 2].map(|corner| [0, 1, 2].map(|slot| rel(i, corner, slot)));
+                (u[i], v[i], w[i], tt[i]) = edge_lane(c, (sx[i], sy[i], sz[i]));
+            }
+        }
+    }
+    (u, v, w, tt)
+}
+
+impl<const N: usize> TriangleTest<N> for Shear<N> {
+    #[inline(always)]
+    fn test(&self, p: &Packet<N>, c: &[[f32; 3]; 3]) -> ([f32; N], [f32; N], [f32; N], [f32; N]) {
+        let k = [self.kx, self.ky, self.kz];
+        core(
+            |i, corner, slot| c[corner][k[slot]] - p.org[k[slot]][i],
+            &self.sx,
+            &self.sy,
+            &self.sz,
+        )
+    }
+}
+
+impl<const N: usize> TriangleTest<N> for MixedShear<N> {
+    #[inline(always)]
+    fn test(&self, _p: &Packet<N>, c: &[[f32; 3]; 3]) -> ([f32; N], [f32; N], [f32; N], [f32; N]) {
+        let pick = |q: &[f32; 3], k: u8| {
+            if k == 0 {
+                q[0]
+            } else if k == 1 {
+                q[1]
+            } else {
+                q[2]
+            }
+        };
+        core(
+            |i, corner, slot| pick(&c[corner], self.k[slot][i]) - self.o[slot][i],
+            &self.sx,
+            &self.sy,
+            &self.sz,
+        )
     }
 }
 
@@ -366,7 +462,7 @@ impl<const N: usize> Traversal<N> {
         top: &TopLevel,
         source: &dyn VoxelSource,
     ) -> Step {
-        let shear = Shear::new(packet);
+        let shear = AnyShear::new(packet);
         if !self.started {
             self.started = true;
             let (t0, t1) = packet.slab(top.root.min, top.root.max);
@@ -389,8 +485,8 @@ impl<const N: usize> Traversal<N> {
                     };
                     self.voxels_visited += 1;
                     match &shear {
-                        Some(s) => packet.voxel(s, &vox),
-                        None => lane_by_lane(packet, &vox),
+                        AnyShear::Uniform(s) => packet.voxel(s, &vox),
+                        AnyShear::Mixed(s) => packet.voxel(s, &vox),
                     }
                 }
                 TopNode::Split {
@@ -442,38 +538,5 @@ impl<const N: usize> Traversal<N> {
             }
         }
         Step::Done
-    }
-}
-
-/// A packet whose lanes need different shears: each lane alone, through
-/// a one-lane packet (rare: only where a packet straddles a diagonal).
-#[inline(always)]
-fn lane_by_lane<const N: usize>(packet: &mut Packet<N>, vox: &PreparedVoxel) {
-    for i in 0..N {
-        let o = [Vec3::new(
-            packet.org[0][i],
-            packet.org[1][i],
-            packet.org[2][i],
-        )];
-        let d = [Vec3::new(
-            packet.dir[0][i],
-            packet.dir[1][i],
-            packet.dir[2][i],
-        )];
-        let mut one = Packet::<1>::new(&o, &d, packet.tmin, packet.t[i]);
-        one.any_hit = packet.any_hit;
-        one.id[0] = packet.id[i];
-        one.voxel[0] = packet.voxel[i];
-        one.tri[0] = packet.tri[i];
-        one.u[0] = packet.u[i];
-        one.v[0] = packet.v[i];
-        let shear = Shear::new(&one).expect("one lane has one permutation");
-        one.voxel(&shear, vox);
-        packet.t[i] = one.t[0];
-        packet.id[i] = one.id[0];
-        packet.voxel[i] = one.voxel[0];
-        packet.tri[i] = one.tri[0];
-        packet.u[i] = one.u[0];
-        packet.v[i] = one.v[0];
     }
 }

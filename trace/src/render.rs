@@ -72,7 +72,7 @@ impl Isa {
 }
 
 /// What to compute besides the primary hits.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Debug)]
 pub struct RenderSettings {
     /// Shade the image (vertex normals and colors, one distant light).
     pub shade: bool,
@@ -84,6 +84,13 @@ pub struct RenderSettings {
     pub isa: Isa,
     /// Diagonal of the scene, for the shadow ray offset.
     pub scene_diagonal: f32,
+    /// Mirror bounces (0: none).
+    pub reflections: u32,
+    /// Which surfaces reflect, and how much of the light they reflect.
+    pub reflective: ReflectRule,
+    pub reflectance: f32,
+    /// Color by voxel instead of by vertex color.
+    pub voxel_colors: bool,
 }
 
 /// One rendered frame.
@@ -106,6 +113,7 @@ pub struct FrameStats {
     pub primary_rays: u64,
     pub shadow_rays: u64,
     pub occluded: u64,
+    pub reflection_rays: u64,
     pub hits: u64,
     pub seconds: f64,
     /// Thread time spent in shadow packets, summed over threads.
@@ -149,7 +157,7 @@ pub fn render(
         top,
         source,
         basis: camera.basis(),
-        settings: *settings,
+        settings: settings.clone(),
         light: settings.light.normalize_or(Vec3::Y),
         width: w,
         height: h,
@@ -214,6 +222,7 @@ fn merge(frame: &Mutex<Frame>, out: TileOut) {
     let s = &mut f.stats;
     s.primary_rays += out.stats.primary_rays;
     s.shadow_rays += out.stats.shadow_rays;
+    s.reflection_rays += out.stats.reflection_rays;
     s.occluded += out.stats.occluded;
     s.hits += out.stats.hits;
     s.shadow_seconds += out.stats.shadow_seconds;
@@ -267,7 +276,6 @@ fn tile<const N: usize, const BW: u32>(shared: &Shared, x0: u32, y0: u32) -> Res
     };
     let mut trav = Traversal::<N>::default();
     let eye = [shared.basis.eye; N];
-    let shadow_eps = SHADOW_EPS * settings.scene_diagonal;
     for by in (0..h).step_by(bh as usize) {
         for bx in (0..w).step_by(BW as usize) {
             // Lanes past the tile's edge repeat its last pixel; their
@@ -286,40 +294,10 @@ fn tile<const N: usize, const BW: u32>(shared: &Shared, x0: u32, y0: u32) -> Res
                 return Err(id);
             }
             out.stats.voxels_visited += trav.voxels_visited as u64;
-            let mut lit = [true; N];
-            if settings.shadows {
-                let started = Instant::now();
-                let mut origins = [Vec3::ZERO; N];
-                for i in 0..N {
-                    origins[i] = shared.basis.eye + dirs[i] * packet.t[i];
-                }
-                let mut shadow =
-                    Packet::<N>::new(&origins, &[shared.light; N], shadow_eps, f32::INFINITY);
-                shadow.any_hit = true;
-                for i in 0..N {
-                    // Lanes without a primary hit take no part.
-                    if !packet.hit(i) {
-                        shadow.t[i] = f32::NEG_INFINITY;
-                    }
-                }
-                trav.reset();
-                if let Step::Missing(id) = trav.run(&mut shadow, shared.top, shared.source) {
-                    return Err(id);
-                }
-                for (i, l) in lit.iter_mut().enumerate() {
-                    *l = !(packet.hit(i) && shadow.occluded(i));
-                }
-                out.stats.shadow_seconds += started.elapsed().as_secs_f64();
-                // Count each pixel's shadow ray once (edge lanes repeat).
-                for (i, &(x, y)) in px.iter().enumerate() {
-                    if is_own_lane::<BW>(i, x, y, bx, by) && packet.hit(i) {
-                        out.stats.shadow_rays += 1;
-                        out.stats.occluded += !lit[i] as u64;
-                    }
-                }
-            }
+            let mut own = [false; N];
             for (i, &(x, y)) in px.iter().enumerate() {
-                if !is_own_lane::<BW>(i, x, y, bx, by) {
+                own[i] = is_own_lane::<BW>(i, x, y, bx, by);
+                if !own[i] {
                     continue;
                 }
                 let k = (y * w + x) as usize;
@@ -329,8 +307,16 @@ fn tile<const N: usize, const BW: u32>(shared: &Shared, x0: u32, y0: u32) -> Res
                     out.primid[k] = packet.id[i];
                     out.stats.hits += 1;
                 }
-                if settings.shade {
-                    out.rgba[k] = shade(shared, &packet, i, dirs[i], lit[i]);
+            }
+            if !settings.shade {
+                continue;
+            }
+            let colors = shade_bounces(shared, &mut trav, packet, &dirs, &own, &mut out.stats)?;
+            for (i, &(x, y)) in px.iter().enumerate() {
+                if own[i] {
+                    let c = |v: f32| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8;
+                    out.rgba[(y * w + x) as usize] =
+                        [c(colors[i].x), c(colors[i].y), c(colors[i].z), 255];
                 }
             }
         }
@@ -344,33 +330,189 @@ fn is_own_lane<const BW: u32>(i: usize, x: u32, y: u32, bx: u32, by: u32) -> boo
     x == bx + i as u32 % BW && y == by + i as u32 / BW
 }
 
-/// Lambert shading with the interpolated vertex normal (turned towards the
-/// viewer) and color, an ambient term, and the shadow.
-fn shade<const N: usize>(
+/// Which surfaces are mirrors (models carry no materials).
+#[derive(Clone, Debug, PartialEq)]
+pub enum ReflectRule {
+    /// Every surface.
+    All,
+    /// Triangles whose ORIGINAL id is in the range.
+    Ids(std::ops::Range<u32>),
+    /// Surfaces of this vertex color (within a few units per channel).
+    Color([u8; 3]),
+}
+
+impl std::str::FromStr for ReflectRule {
+    type Err = String;
+
+    /// `all`, `ids:A-B` (B exclusive) or `color:R,G,B`.
+    fn from_str(s: &str) -> Result<Self, String> {
+        let bad = || format!("'{s}' is not a reflection rule (all, ids:A-B or color:R,G,B)");
+        if s == "all" {
+            return Ok(ReflectRule::All);
+        }
+        if let Some(r) = s.strip_prefix("ids:") {
+            let (a, b) = r.split_once('-').ok_or_else(bad)?;
+            let (a, b) = (a.parse().map_err(|_| bad())?, b.parse().map_err(|_| bad())?);
+            return if a < b {
+                Ok(ReflectRule::Ids(a..b))
+            } else {
+                Err(bad())
+            };
+        }
+        if let Some(c) = s.strip_prefix("color:") {
+            let v: Vec<u8> = c
+                .split(',')
+                .map(|x| x.trim().parse())
+                .collect::<Result<_, _>>()
+                .map_err(|_| bad())?;
+            if let [r, g, b] = v[..] {
+                return Ok(ReflectRule::Color([r, g, b]));
+            }
+        }
+        Err(bad())
+    }
+}
+
+impl ReflectRule {
+    fn matches(&self, id: u32, color: Vec3) -> bool {
+        match self {
+            ReflectRule::All => true,
+            ReflectRule::Ids(r) => r.contains(&id),
+            ReflectRule::Color(c) => {
+                let target = Vec3::new(c[0] as f32, c[1] as f32, c[2] as f32) / 255.0;
+                (color - target).abs().max_element() <= 6.0 / 255.0
+            }
+        }
+    }
+}
+
+/// A color per voxel (the paper's Figure 5).
+fn voxel_color(id: u32) -> Vec3 {
+    let h = (id.wrapping_mul(0x9E37_79B9) >> 8) as f32 / (1 << 24) as f32;
+    let k = |n: f32| {
+        let x = (n + h * 6.0) % 6.0;
+        (1.0 - (x.min(4.0 - x).clamp(0.0, 1.0))) * 0.55 + 0.35
+    };
+    Vec3::new(k(5.0), k(3.0), k(1.0))
+}
+
+const BACKGROUND: Vec3 = Vec3::new(0.094, 0.11, 0.14);
+
+/// Colors of a packet's pixels: Lambert shading with the interpolated
+/// vertex normal and color, an ambient term, hard shadows, and mirror
+/// bounces up to `reflections` deep, each traced as a packet.
+fn shade_bounces<const N: usize>(
     shared: &Shared,
-    p: &Packet<N>,
-    i: usize,
-    dir: Vec3,
-    lit: bool,
-) -> [u8; 4] {
-    if !p.hit(i) {
-        return [24, 28, 36, 255];
+    trav: &mut Traversal<N>,
+    primary: Packet<N>,
+    dirs: &[Vec3; N],
+    own: &[bool; N],
+    stats: &mut FrameStats,
+) -> Result<[Vec3; N], u32> {
+    let s = &shared.settings;
+    let eps = SHADOW_EPS * s.scene_diagonal;
+    let mut color = [Vec3::ZERO; N];
+    let mut weight = [1.0f32; N];
+    let mut cur = primary;
+    let mut cur_dirs = *dirs;
+    let mut origins = [shared.basis.eye; N];
+    for bounce in 0..=s.reflections {
+        let mut points = [Vec3::ZERO; N];
+        let mut normals = [Vec3::Y; N];
+        let mut albedo = [Vec3::ZERO; N];
+        let mut mirror = [0.0f32; N];
+        for i in 0..N {
+            if weight[i] == 0.0 {
+                continue;
+            }
+            if !cur.hit(i) {
+                color[i] += BACKGROUND * weight[i];
+                weight[i] = 0.0;
+                continue;
+            }
+            let vox = shared.source.voxel(cur.voxel[i]).ok_or(cur.voxel[i])?;
+            let (mut n, c) = vox.surface(cur.tri[i], cur.u[i], cur.v[i]);
+            let c = Vec3::from_array(c);
+            if n.dot(cur_dirs[i]) > 0.0 {
+                n = -n;
+            }
+            points[i] = origins[i] + cur_dirs[i] * cur.t[i];
+            normals[i] = n;
+            albedo[i] = if s.voxel_colors {
+                voxel_color(cur.voxel[i])
+            } else {
+                c
+            };
+            if bounce < s.reflections && s.reflective.matches(cur.id[i], c) {
+                mirror[i] = s.reflectance;
+            }
+        }
+        let mut lit = [true; N];
+        if s.shadows {
+            let started = Instant::now();
+            let mut shadow = Packet::<N>::new(&points, &[shared.light; N], eps, f32::INFINITY);
+            shadow.any_hit = true;
+            for i in 0..N {
+                // Lanes without a surface to light take no part.
+                if weight[i] == 0.0 {
+                    shadow.t[i] = f32::NEG_INFINITY;
+                }
+            }
+            trav.reset();
+            if let Step::Missing(id) = trav.run(&mut shadow, shared.top, shared.source) {
+                return Err(id);
+            }
+            for i in 0..N {
+                if weight[i] > 0.0 {
+                    lit[i] = !shadow.occluded(i);
+                    if own[i] {
+                        stats.shadow_rays += 1;
+                        stats.occluded += !lit[i] as u64;
+                    }
+                }
+            }
+            stats.shadow_seconds += started.elapsed().as_secs_f64();
+        }
+        let mut any_mirror = false;
+        for i in 0..N {
+            if weight[i] == 0.0 {
+                continue;
+            }
+            let diffuse = if lit[i] {
+                normals[i].dot(shared.light).max(0.0)
+            } else {
+                0.0
+            };
+            let local = albedo[i] * (AMBIENT + (1.0 - AMBIENT) * diffuse);
+            color[i] += local * (weight[i] * (1.0 - mirror[i]));
+            weight[i] *= mirror[i];
+            any_mirror |= weight[i] > 0.0;
+        }
+        if !any_mirror {
+            break;
+        }
+        let mut reflected = [Vec3::Y; N];
+        for i in 0..N {
+            let d = cur_dirs[i];
+            reflected[i] = (d - normals[i] * (2.0 * d.dot(normals[i]))).normalize_or(normals[i]);
+        }
+        let mut next = Packet::<N>::new(&points, &reflected, eps, f32::INFINITY);
+        for i in 0..N {
+            if weight[i] == 0.0 {
+                next.t[i] = f32::NEG_INFINITY;
+            } else if own[i] {
+                stats.reflection_rays += 1;
+            }
+        }
+        trav.reset();
+        if let Step::Missing(id) = trav.run(&mut next, shared.top, shared.source) {
+            return Err(id);
+        }
+        cur = next;
+        cur_dirs = reflected;
+        origins = points;
     }
-    let Some(vox) = shared.source.voxel(p.voxel[i]) else {
-        return [255, 0, 255, 255];
-    };
-    let (mut n, color) = vox.surface(p.tri[i], p.u[i], p.v[i]);
-    if n.dot(dir) > 0.0 {
-        n = -n;
-    }
-    let diffuse = if lit {
-        n.dot(shared.light).max(0.0)
-    } else {
-        0.0
-    };
-    let k = AMBIENT + (1.0 - AMBIENT) * diffuse;
-    let c = |x: f32| ((x * k).clamp(0.0, 1.0) * 255.0 + 0.5) as u8;
-    [c(color[0]), c(color[1]), c(color[2]), 255]
+    Ok(color)
 }
 
 /// Renders once untimed (warm-up), then `repeat` timed passes; returns the

@@ -98,6 +98,10 @@ fn settings(isa: Isa, m: &Model) -> RenderSettings {
         threads: 2,
         isa,
         scene_diagonal: m.db.manifest.model_bounds.diagonal(),
+        reflections: 0,
+        reflective: dray_trace::render::ReflectRule::All,
+        reflectance: 0.5,
+        voxel_colors: false,
     }
 }
 
