@@ -95,12 +95,12 @@ enum Command {
 struct RenderArgs {
     db: PathBuf,
     /// Camera position (default: a view of the whole model).
-    #[arg(long, value_parser = parse_vec3)]
+    #[arg(long, value_parser = parse_vec3, allow_hyphen_values = true)]
     eye: Option<Vec3>,
     /// Point looked at (default: the model's centre).
-    #[arg(long, value_parser = parse_vec3)]
+    #[arg(long, value_parser = parse_vec3, allow_hyphen_values = true)]
     look: Option<Vec3>,
-    #[arg(long, value_parser = parse_vec3, default_value = "0,1,0")]
+    #[arg(long, value_parser = parse_vec3, default_value = "0,1,0", allow_hyphen_values = true)]
     up: Vec3,
     /// Vertical field of view in degrees.
     #[arg(long, default_value_t = 50.0)]
@@ -122,7 +122,7 @@ struct RenderArgs {
     #[arg(long)]
     shadows: bool,
     /// Direction towards the distant light.
-    #[arg(long, value_parser = parse_vec3, default_value = "0.3,1,0.2")]
+    #[arg(long, value_parser = parse_vec3, default_value = "0.3,1,0.2", allow_hyphen_values = true)]
     light: Vec3,
     /// Mirror bounces on reflective surfaces.
     #[arg(long, default_value_t = 0)]

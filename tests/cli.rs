@@ -66,6 +66,52 @@ fn generate_preprocess_verify_info() {
     let out = dray(&["info", s(&db)]);
     assert!(text(&out).contains("replication factor"), "{}", text(&out));
 
+    // Render with negative coordinates written plainly, and every output.
+    let (png, pfm, ids) = (
+        dir.path().join("a.png"),
+        dir.path().join("d.pfm"),
+        dir.path().join("p.u32"),
+    );
+    let out = dray(&[
+        "render",
+        s(&db),
+        "--eye",
+        "-20,15,-25",
+        "--look",
+        "40,2,30",
+        "--width",
+        "64",
+        "--height",
+        "48",
+        "--shadows",
+        "--reflections",
+        "1",
+        "--out",
+        s(&png),
+        "--depth-out",
+        s(&pfm),
+        "--primid-out",
+        s(&ids),
+        "--json",
+    ]);
+    assert!(out.status.success(), "{}", text(&out));
+    let last = String::from_utf8(out.stdout)
+        .unwrap()
+        .lines()
+        .last()
+        .unwrap()
+        .to_string();
+    let json: serde_json::Value = serde_json::from_str(&last).unwrap();
+    assert_eq!(json["width"], 64);
+    assert!(json["hit_fraction"].as_f64().unwrap() > 0.05, "{last}");
+    assert!(json["shadow_rays"].as_u64().unwrap() > 0, "{last}");
+    assert!(std::fs::read(&png).unwrap().starts_with(b"\x89PNG"));
+    assert_eq!(std::fs::metadata(&ids).unwrap().len(), 64 * 48 * 4);
+    assert_eq!(
+        std::fs::metadata(&pfm).unwrap().len(),
+        "Pf\n64 48\n-1.0\n".len() as u64 + 64 * 48 * 4
+    );
+
     // Corrupt the middle of the voxels file: verify names a voxel and fails.
     let voxels = db.join("voxels.dray");
     let mut bytes = std::fs::read(&voxels).unwrap();
