@@ -140,12 +140,30 @@ struct RenderArgs {
     /// Render threads (default: every core).
     #[arg(long, default_value_t = 0)]
     threads: usize,
+    /// Kernel instruction set: avx512, avx2 or portable (default: the best
+    /// this CPU has).
+    #[arg(long, value_parser = parse_isa)]
+    isa: Option<Isa>,
     /// Timed passes (after one untimed warm-up); best and median are reported.
     #[arg(long, default_value_t = 1)]
     repeat: usize,
     /// Print one JSON object as the last line.
     #[arg(long)]
     json: bool,
+}
+
+fn parse_isa(s: &str) -> Result<Isa, String> {
+    let isa = match s {
+        "avx512" => Isa::Avx512,
+        "avx2" => Isa::Avx2,
+        "portable" => Isa::Portable,
+        _ => return Err(format!("'{s}' is not avx512, avx2 or portable")),
+    };
+    if isa.supported() {
+        Ok(isa)
+    } else {
+        Err(format!("this CPU cannot run the {s} kernel"))
+    }
 }
 
 fn parse_vec3(s: &str) -> Result<Vec3, String> {
@@ -403,7 +421,7 @@ fn render(a: &RenderArgs) -> Result<()> {
         shadows: a.shadows,
         light: a.light,
         threads,
-        isa: Isa::detect(),
+        isa: a.isa.unwrap_or_else(Isa::detect),
         scene_diagonal: bounds.diagonal(),
         reflections: a.reflections,
         reflective: a.reflective.clone(),

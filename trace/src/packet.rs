@@ -168,23 +168,19 @@ impl<const N: usize> Packet<N> {
             if !any {
                 continue;
             }
-            if node.count > 0 {
+            if node.is_leaf() {
                 for k in node.first..node.first + node.count {
                     let p = &vox.corners[k as usize];
                     let (u, v, w, t) = shear.test(self, p);
                     self.accept(&u, &v, &w, &t, vox.ids[k as usize], vox.id, k);
                 }
             } else {
-                // Near child last, so it is popped first: order by the
-                // children's centres along the first ray.
+                // Near child last, so it is popped first, in the order the
+                // first ray meets them.
                 let left = stack[top] + 1;
                 let right = node.first;
-                let (l, r) = (&vox.nodes[left as usize], &vox.nodes[right as usize]);
-                let mut along = 0.0;
-                for a in 0..3 {
-                    along += ((l.min[a] + l.max[a]) - (r.min[a] + r.max[a])) * self.dir[a][0];
-                }
-                let (near, far) = if along <= 0.0 {
+                let dir0 = [self.dir[0][0], self.dir[1][0], self.dir[2][0]];
+                let (near, far) = if node.first_child_near(dir0) {
                     (left, right)
                 } else {
                     (right, left)

@@ -55,6 +55,15 @@ impl Isa {
         Isa::Portable
     }
 
+    /// Whether this CPU can run the kernel compiled for `self`.
+    pub fn supported(self) -> bool {
+        match (self, Isa::detect()) {
+            (Isa::Portable, _) => true,
+            (Isa::Avx2, best) => best != Isa::Portable,
+            (Isa::Avx512, best) => best == Isa::Avx512,
+        }
+    }
+
     pub fn lanes(self) -> usize {
         match self {
             Isa::Avx512 => 16,

@@ -66,7 +66,29 @@ pub struct Node {
     pub min: [f32; 3],
     pub first: u32,
     pub max: [f32; 3],
+    /// Leaf: its triangle count. Interior: `INTERIOR | order`, where
+    /// `order` says which child to visit first without loading either:
+    /// bits 0-1 the axis along which the children's centres differ most,
+    /// bit 2 set when the first child (`self + 1`) lies above the other.
     pub count: u32,
+}
+
+impl Node {
+    pub const INTERIOR: u32 = 1 << 31;
+
+    #[inline(always)]
+    pub fn is_leaf(&self) -> bool {
+        self.count & Node::INTERIOR == 0
+    }
+
+    /// Whether a ray with direction component `d` on the node's ordering
+    /// axis meets the first child (`self + 1`) first.
+    #[inline(always)]
+    pub fn first_child_near(&self, dir: [f32; 3]) -> bool {
+        let axis = (self.count & 3) as usize;
+        let above = self.count & 4 != 0;
+        (dir[axis] >= 0.0) != above
+    }
 }
 
 /// A voxel in the kernel's layout: BVH nodes, each triangle's corners
@@ -90,14 +112,31 @@ pub struct PreparedVoxel {
 
 impl PreparedVoxel {
     pub fn new(id: u32, v: &Voxel) -> PreparedVoxel {
+        let centre2 = |i: usize| {
+            let b = &v.bvh[i].bounds;
+            [0, 1, 2].map(|a| b.min[a] + b.max[a])
+        };
         let nodes: Vec<Node> = v
             .bvh
             .iter()
-            .map(|n| Node {
-                min: n.bounds.min,
-                first: n.first,
-                max: n.bounds.max,
-                count: n.count,
+            .enumerate()
+            .map(|(i, n)| {
+                let count = if n.count > 0 {
+                    n.count
+                } else {
+                    let (l, r) = (centre2(i + 1), centre2(n.first as usize));
+                    let diff = [0, 1, 2].map(|a| l[a] - r[a]);
+                    let axis = (0..3)
+                        .max_by(|&a, &b| diff[a].abs().total_cmp(&diff[b].abs()))
+                        .unwrap_or(0);
+                    Node::INTERIOR | axis as u32 | (((diff[axis] > 0.0) as u32) << 2)
+                };
+                Node {
+                    min: n.bounds.min,
+                    first: n.first,
+                    max: n.bounds.max,
+                    count,
+                }
             })
             .collect();
         let corners: Vec<[[f32; 3]; 3]> = v
