@@ -409,7 +409,9 @@ const BACKGROUND: Vec3 = Vec3::new(0.094, 0.11, 0.14);
 
 /// Colors of a packet's pixels: Lambert shading with the interpolated
 /// vertex normal and color, an ambient term, hard shadows, and mirror
-/// bounces up to `reflections` deep, each traced as a packet.
+/// bounces up to `reflections` deep, each traced as a packet. Inlined into
+/// the ISA-specific tile functions so its packets get their SIMD code too.
+#[inline(always)]
 fn shade_bounces<const N: usize>(
     shared: &Shared,
     trav: &mut Traversal<N>,
