@@ -155,46 +155,72 @@ impl<const N: usize> Packet<N> {
         if vox.nodes.is_empty() {
             return;
         }
-        let mut stack = [0u32; 64];
+        // Entries: a wide node index, or a leaf as LEAF | count << 24 |
+        // first (counts are at most 4, so first has 24 bits; longer leaves
+        // or voxels are pushed as several entries).
+        const LEAF: u32 = 1 << 31;
+        // Each wide level pushes at most 4 entries and the BVH is at most
+        // 64 binary levels deep: 4 * 64 + 4 entries always fit.
+        let mut stack = [0u32; 260];
         let mut top = 1usize;
+        let dir0 = [self.dir[0][0], self.dir[1][0], self.dir[2][0]];
         while top > 0 {
             top -= 1;
-            let node = vox.nodes[stack[top] as usize];
-            let (t0, t1) = self.slab(node.min, node.max);
-            let mut any = false;
-            for i in 0..N {
-                any |= t0[i] <= t1[i];
-            }
-            if !any {
-                continue;
-            }
-            if node.is_leaf() {
-                for k in node.first..node.first + node.count {
+            let entry = stack[top];
+            if entry & LEAF != 0 {
+                let first = entry & 0x00FF_FFFF;
+                let count = (entry >> 24) & 0x7F;
+                for k in first..first + count {
                     let p = &vox.corners[k as usize];
                     let (u, v, w, t) = shear.test(self, p);
                     self.accept(&u, &v, &w, &t, vox.ids[k as usize], vox.id, k);
                 }
-            } else {
-                // Near child last, so it is popped first, in the order the
-                // first ray meets them.
-                let left = stack[top] + 1;
-                let right = node.first;
-                let dir0 = [self.dir[0][0], self.dir[1][0], self.dir[2][0]];
-                let (near, far) = if node.first_child_near(dir0) {
-                    (left, right)
-                } else {
-                    (right, left)
-                };
-                if top + 2 > stack.len() {
-                    // Deeper than any BVH the builder makes (it caps the
-                    // depth); traverse what fits rather than overflow.
-                    stack[top] = near;
-                    top += 1;
+                continue;
+            }
+            let node = &vox.nodes[entry as usize];
+            // Test every child box; order the hit ones by where the first
+            // ray meets their centres.
+            let mut hits = [(0.0f32, 0u32); 4];
+            let mut n = 0;
+            for c in 0..4 {
+                if node.count[c] == crate::scene::WideNode::EMPTY {
+                    break;
+                }
+                let min = [node.min[0][c], node.min[1][c], node.min[2][c]];
+                let max = [node.max[0][c], node.max[1][c], node.max[2][c]];
+                let (t0, t1) = self.slab(min, max);
+                let mut any = false;
+                for i in 0..N {
+                    any |= t0[i] <= t1[i];
+                }
+                if !any {
                     continue;
                 }
-                stack[top] = far;
-                stack[top + 1] = near;
-                top += 2;
+                let key = (min[0] + max[0]) * dir0[0]
+                    + (min[1] + max[1]) * dir0[1]
+                    + (min[2] + max[2]) * dir0[2];
+                let count = node.count[c];
+                let first = node.child[c];
+                if count == 0 {
+                    hits[n] = (key, first);
+                    n += 1;
+                } else if count <= 0x7F && first <= 0x00FF_FFFF {
+                    hits[n] = (key, LEAF | (count << 24) | first);
+                    n += 1;
+                } else {
+                    // A leaf too long for one entry (never built; kept exact).
+                    for k in first..first + count {
+                        let p = &vox.corners[k as usize];
+                        let (u, v, w, t) = shear.test(self, p);
+                        self.accept(&u, &v, &w, &t, vox.ids[k as usize], vox.id, k);
+                    }
+                }
+            }
+            // Far first on the stack, so the nearest is popped next.
+            hits[..n].sort_unstable_by(|a, b| b.0.total_cmp(&a.0));
+            for &(_, e) in &hits[..n] {
+                stack[top] = e;
+                top += 1;
             }
         }
     }

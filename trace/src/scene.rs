@@ -57,38 +57,88 @@ impl TopLevel {
     }
 }
 
-/// A node of a voxel's BVH: bounds, then either a leaf's triangle range
-/// (`count > 0`) or an interior node whose children are `self + 1` and
-/// `first` (`count == 0`). 32 bytes, two to a cache line.
+/// A node of the kernel's 4-wide BVH: the boxes of up to four children
+/// side by side (one node load tests all of them against a packet), and
+/// for each child either an interior node index (`count == 0`) or a leaf's
+/// triangle range. Slots past the last child have `count == EMPTY`.
+/// 128 bytes, two cache lines.
 #[derive(Clone, Copy, Debug)]
-#[repr(C, align(32))]
-pub struct Node {
-    pub min: [f32; 3],
-    pub first: u32,
-    pub max: [f32; 3],
-    /// Leaf: its triangle count. Interior: `INTERIOR | order`, where
-    /// `order` says which child to visit first without loading either:
-    /// bits 0-1 the axis along which the children's centres differ most,
-    /// bit 2 set when the first child (`self + 1`) lies above the other.
-    pub count: u32,
+#[repr(C, align(64))]
+pub struct WideNode {
+    /// `min[axis][child]`, `max[axis][child]`.
+    pub min: [[f32; 4]; 3],
+    pub max: [[f32; 4]; 3],
+    pub child: [u32; 4],
+    pub count: [u32; 4],
 }
 
-impl Node {
-    pub const INTERIOR: u32 = 1 << 31;
+impl WideNode {
+    pub const EMPTY: u32 = u32::MAX;
+}
 
-    #[inline(always)]
-    pub fn is_leaf(&self) -> bool {
-        self.count & Node::INTERIOR == 0
+/// Collapses the voxel's binary BVH into a 4-wide one: each wide node takes
+/// the two children of a binary node and keeps opening its interior child
+/// of largest surface area until it has four. Halves the chain of
+/// dependent node loads a ray walks.
+fn widen(bvh: &[dray_scene::voxel::BvhNode]) -> Vec<WideNode> {
+    fn is_leaf(bvh: &[dray_scene::voxel::BvhNode], i: usize) -> bool {
+        bvh[i].count > 0
     }
-
-    /// Whether a ray with direction component `d` on the node's ordering
-    /// axis meets the first child (`self + 1`) first.
-    #[inline(always)]
-    pub fn first_child_near(&self, dir: [f32; 3]) -> bool {
-        let axis = (self.count & 3) as usize;
-        let above = self.count & 4 != 0;
-        (dir[axis] >= 0.0) != above
+    fn children(bvh: &[dray_scene::voxel::BvhNode], i: usize) -> [usize; 2] {
+        [i + 1, bvh[i].first as usize]
     }
+    fn emit(bvh: &[dray_scene::voxel::BvhNode], kids: Vec<usize>, out: &mut Vec<WideNode>) -> u32 {
+        let me = out.len();
+        out.push(WideNode {
+            min: [[f32::INFINITY; 4]; 3],
+            max: [[f32::NEG_INFINITY; 4]; 3],
+            child: [0; 4],
+            count: [WideNode::EMPTY; 4],
+        });
+        for (slot, &k) in kids.iter().enumerate() {
+            let (child, count) = if is_leaf(bvh, k) {
+                (bvh[k].first, bvh[k].count)
+            } else {
+                (emit(bvh, open(bvh, k), out), 0)
+            };
+            let node = &mut out[me];
+            for a in 0..3 {
+                node.min[a][slot] = bvh[k].bounds.min[a];
+                node.max[a][slot] = bvh[k].bounds.max[a];
+            }
+            node.child[slot] = child;
+            node.count[slot] = count;
+        }
+        me as u32
+    }
+    /// Up to four descendants of interior node `i` that cover it.
+    fn open(bvh: &[dray_scene::voxel::BvhNode], i: usize) -> Vec<usize> {
+        let mut kids = children(bvh, i).to_vec();
+        while kids.len() < 4 {
+            let widest = kids
+                .iter()
+                .enumerate()
+                .filter(|(_, &k)| !is_leaf(bvh, k))
+                .max_by(|a, b| bvh[*a.1].bounds.area().total_cmp(&bvh[*b.1].bounds.area()))
+                .map(|(slot, _)| slot);
+            let Some(slot) = widest else { break };
+            let k = kids.swap_remove(slot);
+            kids.extend(children(bvh, k));
+        }
+        kids
+    }
+    let mut out = Vec::new();
+    if bvh.is_empty() {
+        return out;
+    }
+    // The root itself is the only child of a one-leaf voxel.
+    let top = if is_leaf(bvh, 0) {
+        vec![0]
+    } else {
+        open(bvh, 0)
+    };
+    emit(bvh, top, &mut out);
+    out
 }
 
 /// A voxel in the kernel's layout: BVH nodes, each triangle's corners
@@ -97,7 +147,8 @@ impl Node {
 #[derive(Debug)]
 pub struct PreparedVoxel {
     pub id: u32,
-    pub nodes: Vec<Node>,
+    /// The 4-wide BVH; node 0 is the root (empty without triangles).
+    pub nodes: Vec<WideNode>,
     /// Corner positions of triangle i: `corners[i]` = [a, b, c].
     pub corners: Vec<[[f32; 3]; 3]>,
     /// ORIGINAL triangle id of triangle i.
@@ -112,40 +163,14 @@ pub struct PreparedVoxel {
 
 impl PreparedVoxel {
     pub fn new(id: u32, v: &Voxel) -> PreparedVoxel {
-        let centre2 = |i: usize| {
-            let b = &v.bvh[i].bounds;
-            [0, 1, 2].map(|a| b.min[a] + b.max[a])
-        };
-        let nodes: Vec<Node> = v
-            .bvh
-            .iter()
-            .enumerate()
-            .map(|(i, n)| {
-                let count = if n.count > 0 {
-                    n.count
-                } else {
-                    let (l, r) = (centre2(i + 1), centre2(n.first as usize));
-                    let diff = [0, 1, 2].map(|a| l[a] - r[a]);
-                    let axis = (0..3)
-                        .max_by(|&a, &b| diff[a].abs().total_cmp(&diff[b].abs()))
-                        .unwrap_or(0);
-                    Node::INTERIOR | axis as u32 | (((diff[axis] > 0.0) as u32) << 2)
-                };
-                Node {
-                    min: n.bounds.min,
-                    first: n.first,
-                    max: n.bounds.max,
-                    count,
-                }
-            })
-            .collect();
+        let nodes = widen(&v.bvh);
         let corners: Vec<[[f32; 3]; 3]> = v
             .triangles
             .iter()
             .map(|t| t.map(|i| v.positions[i as usize]))
             .collect();
         let normals: Vec<Vec3> = v.normals.iter().map(|&n| decode_normal(n)).collect();
-        let bytes = nodes.len() * std::mem::size_of::<Node>()
+        let bytes = nodes.len() * std::mem::size_of::<WideNode>()
             + corners.len() * 36
             + v.triangle_ids.len() * 4
             + v.triangles.len() * 12
