@@ -221,9 +221,35 @@ impl<const N: usize> Packet<N> {
             for &(_, e) in &hits[..n] {
                 stack[top] = e;
                 top += 1;
+                // Start fetching what the entry needs: traversal is bound
+                // by these loads, and the far entries wait a while.
+                if e & LEAF == 0 {
+                    let node = &vox.nodes[e as usize] as *const _ as *const u8;
+                    prefetch(node);
+                    prefetch(node.wrapping_add(64));
+                } else {
+                    let first = (e & 0x00FF_FFFF) as usize;
+                    let p = vox.corners[first..].as_ptr() as *const u8;
+                    prefetch(p);
+                    prefetch(p.wrapping_add(64));
+                    prefetch(p.wrapping_add(128));
+                }
             }
         }
     }
+}
+
+/// Asks the CPU to start loading the cache line at `p` (a hint: it never
+/// faults, whatever `p` is).
+#[inline(always)]
+fn prefetch(p: *const u8) {
+    #[cfg(target_arch = "x86_64")]
+    // SAFETY: prefetching reads nothing and cannot fault, for any address.
+    unsafe {
+        std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(p as *const i8);
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = p;
 }
 
 /// The watertight test (`dray_scene::geometry::intersect_triangle`,
