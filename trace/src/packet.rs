@@ -467,18 +467,11 @@ pub enum Step {
     Missing(u32),
 }
 
-/// A BSP node still to visit, with each lane's interval in its cell.
-#[derive(Clone, Debug)]
-struct Pending<const N: usize> {
-    node: u32,
-    t0: [f32; N],
-    t1: [f32; N],
-}
-
-/// The resumable state of one packet's traversal.
+/// The resumable state of one packet's traversal: the BSP nodes still to
+/// visit, nearest on top.
 #[derive(Clone, Debug)]
 pub struct Traversal<const N: usize> {
-    stack: Vec<Pending<N>>,
+    stack: Vec<u32>,
     started: bool,
     /// Voxels entered (for statistics).
     pub voxels_visited: u32,
@@ -513,22 +506,28 @@ impl<const N: usize> Traversal<N> {
         let shear = AnyShear::new(packet);
         if !self.started {
             self.started = true;
-            let (t0, t1) = packet.slab(top.root.min, top.root.max);
-            self.stack.push(Pending { node: 0, t0, t1 });
+            self.stack.push(0);
         }
-        while let Some(e) = self.stack.pop() {
+        while let Some(node) = self.stack.pop() {
+            // Every node is a box of the geometry below it: a lane goes on
+            // where its ray meets the box before its current hit.
+            let b = &top.boxes[node as usize];
+            if b.is_empty() {
+                continue;
+            }
+            let (t0, t1) = packet.slab(b.min, b.max);
             let mut live = false;
             for i in 0..N {
-                live |= (e.t0[i] <= e.t1[i]) & (e.t0[i] <= packet.t[i]);
+                live |= t0[i] <= t1[i];
             }
             if !live {
                 continue;
             }
-            match top.nodes[e.node as usize] {
+            match top.nodes[node as usize] {
                 TopNode::Leaf { voxel: None } => {}
                 TopNode::Leaf { voxel: Some(id) } => {
                     let Some(vox) = source.voxel(id) else {
-                        self.stack.push(e);
+                        self.stack.push(node);
                         return Step::Missing(id);
                     };
                     self.voxels_visited += 1;
@@ -538,49 +537,16 @@ impl<const N: usize> Traversal<N> {
                     }
                 }
                 TopNode::Split {
-                    axis,
-                    pos,
-                    left,
-                    right,
+                    axis, left, right, ..
                 } => {
-                    let a = axis as usize;
-                    let mut l = Pending {
-                        node: left,
-                        t0: e.t0,
-                        t1: e.t1,
-                    };
-                    let mut r = Pending {
-                        node: right,
-                        t0: e.t0,
-                        t1: e.t1,
-                    };
-                    let (mut l_live, mut r_live) = (false, false);
-                    for i in 0..N {
-                        let ts = (pos - packet.org[a][i]) * packet.inv[a][i];
-                        let ts_hi = ts + ts.abs() * WIDEN;
-                        let ts_lo = ts - ts.abs() * WIDEN;
-                        let forward = packet.dir[a][i] >= 0.0;
-                        // Forward rays meet the left cell first.
-                        let near_end = if ts_hi < e.t1[i] { ts_hi } else { e.t1[i] };
-                        let far_start = if ts_lo > e.t0[i] { ts_lo } else { e.t0[i] };
-                        l.t1[i] = if forward { near_end } else { e.t1[i] };
-                        l.t0[i] = if forward { e.t0[i] } else { far_start };
-                        r.t0[i] = if forward { far_start } else { e.t0[i] };
-                        r.t1[i] = if forward { e.t1[i] } else { near_end };
-                        l_live |= (l.t0[i] <= l.t1[i]) & (l.t0[i] <= packet.t[i]);
-                        r_live |= (r.t0[i] <= r.t1[i]) & (r.t0[i] <= packet.t[i]);
-                    }
-                    let left_first = packet.dir[a][0] >= 0.0;
-                    let (near, near_live, far, far_live) = if left_first {
-                        (l, l_live, r, r_live)
+                    // Near child on top: forward rays meet the left cell
+                    // first.
+                    if packet.dir[axis as usize][0] >= 0.0 {
+                        self.stack.push(right);
+                        self.stack.push(left);
                     } else {
-                        (r, r_live, l, l_live)
-                    };
-                    if far_live {
-                        self.stack.push(far);
-                    }
-                    if near_live {
-                        self.stack.push(near);
+                        self.stack.push(left);
+                        self.stack.push(right);
                     }
                 }
             }

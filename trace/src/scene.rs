@@ -27,6 +27,11 @@ pub enum TopNode {
 pub struct TopLevel {
     pub root: Aabb,
     pub nodes: Vec<TopNode>,
+    /// Per node, the bounds of the geometry below it (each voxel's content
+    /// box, united upwards; empty for empty space): the kernel walks the
+    /// BSP as a hierarchy of these boxes, so rays through the empty part
+    /// of a cell skip it.
+    pub boxes: Vec<Aabb>,
     pub voxel_count: u32,
 }
 
@@ -34,6 +39,7 @@ impl TopLevel {
     pub fn from_manifest(m: &Manifest) -> TopLevel {
         TopLevel {
             root: m.root_bounds,
+            boxes: content_boxes(m),
             nodes: m
                 .nodes
                 .iter()
@@ -55,6 +61,29 @@ impl TopLevel {
             voxel_count: m.voxels.len() as u32,
         }
     }
+}
+
+/// Each node's content box, children before parents (an explicit
+/// post-order walk: the manifest is trusted to be a tree, not to be in any
+/// particular order).
+fn content_boxes(m: &Manifest) -> Vec<Aabb> {
+    let mut boxes = vec![Aabb::EMPTY; m.nodes.len()];
+    let mut stack = vec![(0usize, false)];
+    while let Some((i, children_done)) = stack.pop() {
+        match m.nodes[i] {
+            BspNode::Leaf { voxel: Some(v) } => boxes[i] = m.voxels[v as usize].content,
+            BspNode::Leaf { voxel: None } => {}
+            BspNode::Split { left, right, .. } if children_done => {
+                boxes[i] = boxes[left as usize].union(&boxes[right as usize]);
+            }
+            BspNode::Split { left, right, .. } => {
+                stack.push((i, true));
+                stack.push((left as usize, false));
+                stack.push((right as usize, false));
+            }
+        }
+    }
+    boxes
 }
 
 /// A node of the kernel's 4-wide BVH: the boxes of up to four children

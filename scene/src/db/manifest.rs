@@ -17,7 +17,7 @@ pub const MANIFEST_FILE: &str = "manifest.dray";
 pub const VOXELS_FILE: &str = "voxels.dray";
 pub const MAGIC: &[u8; 8] = b"DRAYMANI";
 /// Version of the database format (manifest and voxel blobs together).
-pub const FORMAT_VERSION: u32 = 1;
+pub const FORMAT_VERSION: u32 = 2;
 const HEADER_BYTES: usize = 28;
 /// A manifest larger than this is refused before reading it (a 100 M
 /// triangle model has about 100 k voxels, a few MB of manifest).
@@ -61,6 +61,10 @@ pub enum BspNode {
 pub struct VoxelEntry {
     /// The BSP cell the voxel covers.
     pub bounds: Aabb,
+    /// The bounds of the parts of its triangles inside the cell: a ray
+    /// that misses this box misses the voxel, so traversal can skip the
+    /// empty space of a cell without fetching anything.
+    pub content: Aabb,
     pub triangles: u32,
     pub vertices: u32,
     /// Decoded size in memory.

@@ -3,7 +3,7 @@
 
 use super::manifest::BspNode;
 use super::Database;
-use crate::geometry::{triangle_touches_box, Aabb};
+use crate::geometry::{clipped_bounds, triangle_touches_box, Aabb};
 use crate::progress::Progress;
 use rayon::prelude::*;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -135,6 +135,16 @@ fn check_voxel(
                 "triangle {} (local {i}) does not touch the voxel's bounds",
                 t.id
             ));
+        }
+        // Traversal skips what lies outside the content box: it must hold
+        // every part of every triangle inside the cell.
+        if let Some(inside) = clipped_bounds(&t.positions, &cell) {
+            if !entry.content.expanded(eps).contains_box(&inside) {
+                return Err(format!(
+                    "triangle {} (local {i}) sticks out of the voxel's content bounds",
+                    t.id
+                ));
+            }
         }
         let word = (t.id / 64) as usize;
         match seen.get(word) {

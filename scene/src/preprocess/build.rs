@@ -422,8 +422,13 @@ fn emit_leaf(
     let blob = voxel.encode(ctx.zstd_level);
     let offset = ctx.sink.append(&blob)?;
     ctx.progress.advance(refs.len() as u64);
+    let content = refs
+        .iter()
+        .fold(Aabb::EMPTY, |b, r| b.union(&r.clipped))
+        .intersection(&cell);
     Ok(BuildNode::Leaf(Some(VoxelEntry {
         bounds: cell,
+        content,
         triangles: voxel.triangles.len() as u32,
         vertices: voxel.positions.len() as u32,
         raw_bytes: voxel.raw_size() as u64,
