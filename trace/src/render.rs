@@ -427,6 +427,7 @@ fn shade_bounces<const N: usize>(
     let mut cur = primary;
     let mut cur_dirs = *dirs;
     let mut origins = [shared.basis.eye; N];
+    let mut last: Option<std::sync::Arc<crate::scene::PreparedVoxel>> = None;
     for bounce in 0..=s.reflections {
         let mut points = [Vec3::ZERO; N];
         let mut normals = [Vec3::Y; N];
@@ -441,7 +442,11 @@ fn shade_bounces<const N: usize>(
                 weight[i] = 0.0;
                 continue;
             }
-            let vox = shared.source.voxel(cur.voxel[i]).ok_or(cur.voxel[i])?;
+            // Neighbouring lanes mostly hit the same voxel: fetch it once.
+            if last.as_ref().is_none_or(|v| v.id != cur.voxel[i]) {
+                last = Some(shared.source.voxel(cur.voxel[i]).ok_or(cur.voxel[i])?);
+            }
+            let vox = last.as_ref().expect("just set");
             let (mut n, c) = vox.surface(cur.tri[i], cur.u[i], cur.v[i]);
             let c = Vec3::from_array(c);
             if n.dot(cur_dirs[i]) > 0.0 {
