@@ -79,8 +79,8 @@ enum Command {
         #[command(subcommand)]
         action: CertsAction,
     },
-    /// Generate a default plant, preprocess it (kept for the next run) and
-    /// show what it holds.
+    /// Generate a default plant, preprocess it (kept for the next run), show
+    /// what it holds, and render a walk from outside to deep inside.
     Demo {
         /// Where the demo keeps its model and database.
         #[arg(long, default_value = "data/demo")]
@@ -389,6 +389,51 @@ fn demo(dir: &Path, triangles: u64) -> Result<()> {
         bail!("{}: {}", db_path.display(), report.problems.join("; "));
     }
     print!("{}", DbInfo::from_manifest(&db.manifest).to_text());
+
+    // A walk from outside the plant to deep inside, with shadows.
+    let source = ResidentSource::load(&db)?;
+    let top = TopLevel::from_manifest(&db.manifest);
+    let bounds = db.manifest.model_bounds;
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let settings = RenderSettings {
+        shade: true,
+        shadows: true,
+        light: Vec3::new(0.3, 1.0, 0.2),
+        threads,
+        isa: Isa::detect(),
+        scene_diagonal: bounds.diagonal(),
+        reflections: 0,
+        reflective: ReflectRule::All,
+        reflectance: 0.0,
+        voxel_colors: false,
+    };
+    for (k, (eye, look)) in dray_scene::generate::suggested_views(&bounds)
+        .into_iter()
+        .enumerate()
+    {
+        let camera = Camera {
+            eye,
+            look,
+            up: Vec3::Y,
+            fov_degrees: 60.0,
+            width: 640,
+            height: 480,
+        };
+        let frame = dray_trace::render::render(&top, &source, &camera, &settings)
+            .map_err(|id| anyhow::anyhow!("voxel {id} was not loaded"))?;
+        let png = dir.join(format!("view-{k}.png"));
+        dray_trace::image::write_png(&png, frame.width, frame.height, &frame.rgba)?;
+        let s = &frame.stats;
+        println!(
+            "{}: {:.1} ms, {:.2} Mrays/s ({} primary and {} shadow rays, {:.0} % hit) on {threads} threads",
+            png.display(),
+            s.seconds * 1e3,
+            (s.primary_rays + s.shadow_rays) as f64 / s.seconds / 1e6,
+            s.primary_rays,
+            s.shadow_rays,
+            100.0 * s.hits as f64 / s.primary_rays.max(1) as f64
+        );
+    }
     Ok(())
 }
 
