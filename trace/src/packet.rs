@@ -6,10 +6,12 @@
 //! points (`render.rs`) instantiate this code inside functions compiled for
 //! AVX-512 (16 lanes) or AVX2 (8 lanes), chosen at run time, with a portable
 //! fallback. Hand-written intrinsics would tie the kernel to one ISA; the
-//! generated code was checked to use vector registers throughout.
+//! generated code was checked (objdump) to do its arithmetic on full-width
+//! vector registers.
 //!
-//! [`Traversal`] walks the high-level BSP front to back with per-lane
-//! intervals, then each voxel's BVH. When it reaches a voxel the source does
+//! [`Traversal`] walks the high-level BSP front to back as a hierarchy of
+//! content boxes, then each voxel's 4-wide BVH, culling per lane against
+//! the lane's nearest hit so far. When it reaches a voxel the source does
 //! not hold, it stops and returns [`Step::Missing`]: its whole state (the
 //! stack and the packet's hits) stays in the `Traversal`, and calling
 //! [`Traversal::run`] again later resumes exactly there. The nearest hit is
