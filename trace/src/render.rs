@@ -162,6 +162,12 @@ pub fn render(
     settings: &RenderSettings,
 ) -> Result<Frame, u32> {
     let (w, h) = (camera.width, camera.height);
+    let mut settings = settings.clone();
+    // A kernel the CPU cannot run would be undefined behaviour.
+    if !settings.isa.supported() {
+        settings.isa = Isa::Portable;
+    }
+    let settings = &settings;
     let shared = Shared {
         top,
         source,
@@ -241,7 +247,8 @@ fn merge(frame: &Mutex<Frame>, out: TileOut) {
 fn render_tile(shared: &Shared, x0: u32, y0: u32) -> Result<TileOut, u32> {
     match shared.settings.isa {
         #[cfg(target_arch = "x86_64")]
-        // SAFETY: `Isa::detect` found these features on this CPU.
+        // SAFETY: `render` keeps an ISA only where `Isa::supported` says
+        // this CPU has its features.
         Isa::Avx512 => unsafe { tile_avx512(shared, x0, y0) },
         #[cfg(target_arch = "x86_64")]
         // SAFETY: as above.

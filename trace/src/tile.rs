@@ -66,6 +66,8 @@ pub async fn trace_tile(
     mode: MissMode,
     isa: Isa,
 ) -> Result<TileHits, LoadError> {
+    // A kernel the CPU cannot run would be undefined behaviour.
+    let isa = if isa.supported() { isa } else { Isa::Portable };
     match isa {
         #[cfg(target_arch = "x86_64")]
         Isa::Avx512 => drive::<16, 4>(top, loader, basis, rect, mode, run_avx512).await,
