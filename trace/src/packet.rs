@@ -22,7 +22,7 @@
 // shape LLVM vectorizes.
 #![allow(clippy::needless_range_loop)]
 
-use crate::scene::{PreparedVoxel, TopLevel, TopNode, VoxelSource, WideNode};
+use crate::scene::{PreparedVoxel, TopLevel, TopNode, VoxelSource};
 use glam::Vec3;
 
 /// Relative widening of every culling interval: slab tests round, and a
@@ -157,8 +157,10 @@ impl<const N: usize> Packet<N> {
         if vox.nodes.is_empty() {
             return;
         }
-        // Entries: a wide node index, or a leaf (`WideNode::leaf`).
-        const LEAF: u32 = WideNode::LEAF;
+        // Entries: a wide node index, or a leaf as LEAF | count << 24 |
+        // first (counts are at most 4, so first has 24 bits; longer leaves
+        // or voxels are pushed as several entries).
+        const LEAF: u32 = 1 << 31;
         // Each wide level pushes at most 4 entries and the BVH is at most
         // 64 binary levels deep: 4 * 64 + 4 entries always fit.
         let mut stack = [0u32; 260];
@@ -183,11 +185,11 @@ impl<const N: usize> Packet<N> {
             let mut hits = [(0.0f32, 0u32); 4];
             let mut n = 0;
             for c in 0..4 {
-                let e = node.child[c];
-                if e == WideNode::EMPTY {
+                if node.count[c] == crate::scene::WideNode::EMPTY {
                     break;
                 }
-                let (min, max) = node.child_box(c);
+                let min = [node.min[0][c], node.min[1][c], node.min[2][c]];
+                let max = [node.max[0][c], node.max[1][c], node.max[2][c]];
                 let (t0, t1) = self.slab(min, max);
                 let mut any = false;
                 for i in 0..N {
@@ -199,8 +201,22 @@ impl<const N: usize> Packet<N> {
                 let key = (min[0] + max[0]) * dir0[0]
                     + (min[1] + max[1]) * dir0[1]
                     + (min[2] + max[2]) * dir0[2];
-                hits[n] = (key, e);
-                n += 1;
+                let count = node.count[c];
+                let first = node.child[c];
+                if count == 0 {
+                    hits[n] = (key, first);
+                    n += 1;
+                } else if count <= 0x7F && first <= 0x00FF_FFFF {
+                    hits[n] = (key, LEAF | (count << 24) | first);
+                    n += 1;
+                } else {
+                    // A leaf too long for one entry (never built; kept exact).
+                    for k in first..first + count {
+                        let p = &vox.corners[k as usize];
+                        let (u, v, w, t) = shear.test(self, p);
+                        self.accept(&u, &v, &w, &t, vox.ids[k as usize], vox.id, k);
+                    }
+                }
             }
             // Far first on the stack, so the nearest is popped next.
             hits[..n].sort_unstable_by(|a, b| b.0.total_cmp(&a.0));
@@ -210,7 +226,9 @@ impl<const N: usize> Packet<N> {
                 // Start fetching what the entry needs: traversal is bound
                 // by these loads, and the far entries wait a while.
                 if e & LEAF == 0 {
-                    prefetch(&vox.nodes[e as usize] as *const _ as *const u8);
+                    let node = &vox.nodes[e as usize] as *const _ as *const u8;
+                    prefetch(node);
+                    prefetch(node.wrapping_add(64));
                 } else {
                     let first = (e & 0x00FF_FFFF) as usize;
                     let p = vox.corners[first..].as_ptr() as *const u8;

@@ -86,135 +86,62 @@ fn content_boxes(m: &Manifest) -> Vec<Aabb> {
     boxes
 }
 
-/// A node of the kernel's 4-wide BVH, one cache line: the boxes of up to
-/// four children, quantized to 8 bits per coordinate inside the node's own
-/// box (rounded outwards, so they only ever grow), side by side so one load
-/// tests all four against a packet; and for each child an interior node
-/// index or a leaf entry ([`WideNode::leaf`]).
+/// A node of the kernel's 4-wide BVH: the boxes of up to four children
+/// side by side (one node load tests all of them against a packet), and
+/// for each child either an interior node index (`count == 0`) or a leaf's
+/// triangle range. Slots past the last child have `count == EMPTY`.
+/// 128 bytes, two cache lines.
 #[derive(Clone, Copy, Debug)]
 #[repr(C, align(64))]
 pub struct WideNode {
-    pub origin: [f32; 3],
-    pub scale: [f32; 3],
-    /// `qmin[axis][child]`, `qmax[axis][child]`.
-    pub qmin: [[u8; 4]; 3],
-    pub qmax: [[u8; 4]; 3],
+    /// `min[axis][child]`, `max[axis][child]`.
+    pub min: [[f32; 4]; 3],
+    pub max: [[f32; 4]; 3],
     pub child: [u32; 4],
+    pub count: [u32; 4],
 }
 
 impl WideNode {
-    /// Marks a leaf entry: `LEAF | count << 24 | first`.
-    pub const LEAF: u32 = 1 << 31;
-    /// An unused child slot (a leaf of no triangles).
-    pub const EMPTY: u32 = WideNode::LEAF;
-
-    /// The entry of a leaf of `count` triangles from `first`, if it fits.
-    pub fn leaf(first: u32, count: u32) -> Option<u32> {
-        (count > 0 && count <= 0x7F && first <= 0x00FF_FFFF)
-            .then_some(WideNode::LEAF | (count << 24) | first)
-    }
-
-    /// The (conservative) box of child `c`.
-    #[inline(always)]
-    pub fn child_box(&self, c: usize) -> ([f32; 3], [f32; 3]) {
-        let mut min = [0.0; 3];
-        let mut max = [0.0; 3];
-        for a in 0..3 {
-            min[a] = self.origin[a] + self.qmin[a][c] as f32 * self.scale[a];
-            max[a] = self.origin[a] + self.qmax[a][c] as f32 * self.scale[a];
-        }
-        (min, max)
-    }
-}
-
-/// Quantizes child boxes inside their union so every dequantized box
-/// contains the exact one.
-fn quantize(boxes: &[Aabb], child: [u32; 4]) -> WideNode {
-    let union = boxes.iter().fold(Aabb::EMPTY, |u, b| u.union(b));
-    let mut node = WideNode {
-        origin: union.min,
-        scale: [0.0; 3],
-        qmin: [[0; 4]; 3],
-        qmax: [[0; 4]; 3],
-        child,
-    };
-    for a in 0..3 {
-        let extent = union.max[a] - union.min[a];
-        let mut scale = extent / 255.0 * (1.0 + 1.0 / 65536.0);
-        'fit: loop {
-            node.scale[a] = scale;
-            for (c, b) in boxes.iter().enumerate() {
-                let at = |q: u8| union.min[a] + q as f32 * scale;
-                let q_of = |x: f32| {
-                    if scale > 0.0 {
-                        ((x - union.min[a]) / scale).clamp(0.0, 255.0)
-                    } else {
-                        0.0
-                    }
-                };
-                let mut lo = q_of(b.min[a]).floor() as u8;
-                while lo > 0 && at(lo) > b.min[a] {
-                    lo -= 1;
-                }
-                let mut hi = q_of(b.max[a]).ceil() as u8;
-                while hi < 255 && at(hi) < b.max[a] {
-                    hi += 1;
-                }
-                if at(lo) > b.min[a] || at(hi) < b.max[a] {
-                    // Rounding left the box uncovered: a coarser grid.
-                    scale = if scale > 0.0 {
-                        scale * 2.0
-                    } else {
-                        f32::MIN_POSITIVE
-                    };
-                    continue 'fit;
-                }
-                node.qmin[a][c] = lo;
-                node.qmax[a][c] = hi;
-            }
-            break;
-        }
-    }
-    node
+    pub const EMPTY: u32 = u32::MAX;
 }
 
 /// Collapses the voxel's binary BVH into a 4-wide one: each wide node takes
 /// the two children of a binary node and keeps opening its interior child
 /// of largest surface area until it has four. Halves the chain of
-/// dependent node loads a ray walks. Fails on a leaf the entry format
-/// cannot hold (more than 127 triangles, or beyond triangle 2^24), which the
-/// preprocessor never builds.
-fn widen(bvh: &[dray_scene::voxel::BvhNode]) -> Result<Vec<WideNode>, String> {
-    type Bvh = [dray_scene::voxel::BvhNode];
-    fn is_leaf(bvh: &Bvh, i: usize) -> bool {
+/// dependent node loads a ray walks.
+fn widen(bvh: &[dray_scene::voxel::BvhNode]) -> Vec<WideNode> {
+    fn is_leaf(bvh: &[dray_scene::voxel::BvhNode], i: usize) -> bool {
         bvh[i].count > 0
     }
-    fn children(bvh: &Bvh, i: usize) -> [usize; 2] {
+    fn children(bvh: &[dray_scene::voxel::BvhNode], i: usize) -> [usize; 2] {
         [i + 1, bvh[i].first as usize]
     }
-    fn emit(bvh: &Bvh, kids: Vec<usize>, out: &mut Vec<WideNode>) -> Result<u32, String> {
+    fn emit(bvh: &[dray_scene::voxel::BvhNode], kids: Vec<usize>, out: &mut Vec<WideNode>) -> u32 {
         let me = out.len();
-        out.push(quantize(&[], [WideNode::EMPTY; 4]));
-        let mut child = [WideNode::EMPTY; 4];
-        let mut boxes = Vec::with_capacity(4);
+        out.push(WideNode {
+            min: [[f32::INFINITY; 4]; 3],
+            max: [[f32::NEG_INFINITY; 4]; 3],
+            child: [0; 4],
+            count: [WideNode::EMPTY; 4],
+        });
         for (slot, &k) in kids.iter().enumerate() {
-            child[slot] = if is_leaf(bvh, k) {
-                WideNode::leaf(bvh[k].first, bvh[k].count).ok_or_else(|| {
-                    format!(
-                        "BVH leaf of {} triangles from {} is beyond the kernel's limits",
-                        bvh[k].count, bvh[k].first
-                    )
-                })?
+            let (child, count) = if is_leaf(bvh, k) {
+                (bvh[k].first, bvh[k].count)
             } else {
-                emit(bvh, open(bvh, k), out)?
+                (emit(bvh, open(bvh, k), out), 0)
             };
-            boxes.push(bvh[k].bounds);
+            let node = &mut out[me];
+            for a in 0..3 {
+                node.min[a][slot] = bvh[k].bounds.min[a];
+                node.max[a][slot] = bvh[k].bounds.max[a];
+            }
+            node.child[slot] = child;
+            node.count[slot] = count;
         }
-        out[me] = quantize(&boxes, child);
-        Ok(me as u32)
+        me as u32
     }
     /// Up to four descendants of interior node `i` that cover it.
-    fn open(bvh: &Bvh, i: usize) -> Vec<usize> {
+    fn open(bvh: &[dray_scene::voxel::BvhNode], i: usize) -> Vec<usize> {
         let mut kids = children(bvh, i).to_vec();
         while kids.len() < 4 {
             let widest = kids
@@ -231,7 +158,7 @@ fn widen(bvh: &[dray_scene::voxel::BvhNode]) -> Result<Vec<WideNode>, String> {
     }
     let mut out = Vec::new();
     if bvh.is_empty() {
-        return Ok(out);
+        return out;
     }
     // The root itself is the only child of a one-leaf voxel.
     let top = if is_leaf(bvh, 0) {
@@ -239,8 +166,8 @@ fn widen(bvh: &[dray_scene::voxel::BvhNode]) -> Result<Vec<WideNode>, String> {
     } else {
         open(bvh, 0)
     };
-    emit(bvh, top, &mut out)?;
-    Ok(out)
+    emit(bvh, top, &mut out);
+    out
 }
 
 /// A voxel in the kernel's layout: BVH nodes, each triangle's corners
@@ -264,10 +191,8 @@ pub struct PreparedVoxel {
 }
 
 impl PreparedVoxel {
-    /// The kernel's layout of a (validated) voxel; fails only on a BVH leaf
-    /// beyond the kernel's limits (see `widen`).
-    pub fn new(id: u32, v: &Voxel) -> Result<PreparedVoxel, String> {
-        let nodes = widen(&v.bvh)?;
+    pub fn new(id: u32, v: &Voxel) -> PreparedVoxel {
+        let nodes = widen(&v.bvh);
         let corners: Vec<[[f32; 3]; 3]> = v
             .triangles
             .iter()
@@ -280,7 +205,7 @@ impl PreparedVoxel {
             + v.triangles.len() * 12
             + normals.len() * 12
             + v.colors.len() * 4;
-        Ok(PreparedVoxel {
+        PreparedVoxel {
             id,
             nodes,
             corners,
@@ -289,7 +214,7 @@ impl PreparedVoxel {
             normals,
             colors: v.colors.clone(),
             bytes,
-        })
+        }
     }
 
     /// Interpolated unit shading normal and color of local triangle `tri`
@@ -323,12 +248,7 @@ pub struct ResidentSource {
 impl ResidentSource {
     pub fn load(db: &Database) -> Result<ResidentSource, DbError> {
         let voxels = (0..db.manifest.voxels.len() as u32)
-            .map(|id| {
-                let voxel = db.load_voxel(id)?;
-                let prepared = PreparedVoxel::new(id, &voxel)
-                    .map_err(|message| DbError::Entry { id, message })?;
-                Ok(Arc::new(prepared))
-            })
+            .map(|id| Ok(Arc::new(PreparedVoxel::new(id, &db.load_voxel(id)?))))
             .collect::<Result<Vec<_>, DbError>>()?;
         Ok(ResidentSource { voxels })
     }
@@ -347,37 +267,5 @@ impl ResidentSource {
 impl VoxelSource for ResidentSource {
     fn voxel(&self, id: u32) -> Option<Arc<PreparedVoxel>> {
         self.voxels.get(id as usize).cloned()
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use proptest::prelude::*;
-
-    fn arb_box() -> impl Strategy<Value = Aabb> {
-        // Far from the origin and tiny, or flat: where rounding bites.
-        (
-            prop::array::uniform3(-1e4f32..1e4),
-            prop::array::uniform3(prop_oneof![Just(0.0f32), 1e-6f32..1e-2, 0.0f32..50.0]),
-        )
-            .prop_map(|(lo, ext)| Aabb {
-                min: lo,
-                max: [lo[0] + ext[0], lo[1] + ext[1], lo[2] + ext[2]],
-            })
-    }
-
-    proptest! {
-        #[test]
-        fn quantized_child_boxes_contain_the_exact_ones(boxes in prop::collection::vec(arb_box(), 1..=4)) {
-            let node = quantize(&boxes, [0; 4]);
-            for (c, b) in boxes.iter().enumerate() {
-                let (min, max) = node.child_box(c);
-                for a in 0..3 {
-                    prop_assert!(min[a] <= b.min[a], "axis {a} min {} > {}", min[a], b.min[a]);
-                    prop_assert!(max[a] >= b.max[a], "axis {a} max {} < {}", max[a], b.max[a]);
-                }
-            }
-        }
     }
 }
