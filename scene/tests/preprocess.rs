@@ -126,7 +126,7 @@ proptest! {
     #![proptest_config(ProptestConfig { cases: 4, ..ProptestConfig::default() })]
 
     /// Over the generator's output: exact placement, rays equal brute force,
-    /// `verify` agrees, and replication stays low.
+    /// and `verify` agrees.
     #[test]
     fn generated_plants_are_placed_exactly_and_rays_match(
         seed in any::<u64>(),
@@ -143,9 +143,32 @@ proptest! {
         check_rays(&db, &tris, 2000, seed);
         let report = verify(&db, &Progress::hidden());
         prop_assert!(report.is_ok(), "{:?}", report.problems);
-        let replication = db.manifest.stored_triangles as f64 / triangles as f64;
-        prop_assert!(replication < 1.5, "replication {}", replication);
     }
+}
+
+/// The quality target at the default voxel size: replication under
+/// 1.3 on the plant (small voxels replicate more, see the README's table).
+#[test]
+fn default_settings_replicate_little() {
+    let dir = tempfile::tempdir().unwrap();
+    let model = dir.path().join("plant.ply");
+    generate_plant(
+        &PlantParams {
+            triangles: 300_000,
+            seed: 1,
+        },
+        &model,
+        &mut |_| {},
+    )
+    .unwrap();
+    let db = build(
+        vec![model],
+        &dir.path().join("db"),
+        dray_scene::preprocess::DEFAULT_MAX_TRIANGLES,
+        None,
+    );
+    let replication = db.manifest.stored_triangles as f64 / 300_000.0;
+    assert!(replication < 1.3, "replication {replication}");
 }
 
 #[test]
