@@ -86,6 +86,17 @@ impl<const N: usize> Packet<N> {
         }
     }
 
+    /// Whether every lane of a shadow packet is blocked (or was never
+    /// live): nothing is left to trace.
+    #[inline(always)]
+    fn all_blocked(&self) -> bool {
+        let mut all = true;
+        for i in 0..N {
+            all &= self.t[i] == f32::NEG_INFINITY;
+        }
+        all
+    }
+
     pub fn hit(&self, lane: usize) -> bool {
         self.id[lane] != u32::MAX
     }
@@ -176,6 +187,9 @@ impl<const N: usize> Packet<N> {
                     let p = &vox.corners[k as usize];
                     let (u, v, w, t) = shear.test(self, p);
                     self.accept(&u, &v, &w, &t, vox.ids[k as usize], vox.id, k);
+                }
+                if self.any_hit && self.all_blocked() {
+                    return;
                 }
                 continue;
             }
@@ -536,6 +550,10 @@ impl<const N: usize> Traversal<N> {
                     match &shear {
                         AnyShear::Uniform(s) => packet.voxel(s, &vox),
                         AnyShear::Mixed(s) => packet.voxel(s, &vox),
+                    }
+                    if packet.any_hit && packet.all_blocked() {
+                        self.stack.clear();
+                        break;
                     }
                 }
                 TopNode::Split {
