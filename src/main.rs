@@ -394,19 +394,12 @@ fn demo(dir: &Path, triangles: u64) -> Result<()> {
     let source = ResidentSource::load(&db)?;
     let top = TopLevel::from_manifest(&db.manifest);
     let bounds = db.manifest.model_bounds;
-    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
     let settings = RenderSettings {
         shade: true,
         shadows: true,
-        light: Vec3::new(0.3, 1.0, 0.2),
-        threads,
-        isa: Isa::detect(),
-        scene_diagonal: bounds.diagonal(),
-        reflections: 0,
-        reflective: ReflectRule::All,
-        reflectance: 0.0,
-        voxel_colors: false,
+        ..RenderSettings::primary(bounds.diagonal())
     };
+    let threads = settings.threads;
     for (k, (eye, look)) in dray_scene::generate::suggested_views(&bounds)
         .into_iter()
         .enumerate()
@@ -453,26 +446,27 @@ fn render(a: &RenderArgs) -> Result<()> {
         ..default
     };
     camera.check().map_err(|e| anyhow::anyhow!("camera: {e}"))?;
-    let threads = if a.threads == 0 {
-        std::thread::available_parallelism().map_or(1, |n| n.get())
-    } else {
-        a.threads
-    };
     if !(0.0..=1.0).contains(&a.reflectance) {
         bail!("--reflectance {} is not between 0 and 1", a.reflectance);
     }
+    let defaults = RenderSettings::primary(bounds.diagonal());
     let settings = RenderSettings {
         shade: a.out.is_some() || a.shadows || a.reflections > 0 || a.voxel_colors,
         shadows: a.shadows,
         light: a.light,
-        threads,
-        isa: a.isa.unwrap_or_else(Isa::detect),
-        scene_diagonal: bounds.diagonal(),
+        threads: if a.threads == 0 {
+            defaults.threads
+        } else {
+            a.threads
+        },
+        isa: a.isa.unwrap_or(defaults.isa),
         reflections: a.reflections,
         reflective: a.reflective.clone(),
         reflectance: a.reflectance,
         voxel_colors: a.voxel_colors,
+        ..defaults
     };
+    let threads = settings.threads;
     let (frame, mut seconds) = render_repeated(&top, &source, &camera, &settings, a.repeat)
         .map_err(|id| anyhow::anyhow!("voxel {id} was not loaded"))?;
     if let Some(p) = &a.out {

@@ -102,6 +102,30 @@ pub struct RenderSettings {
     pub voxel_colors: bool,
 }
 
+impl RenderSettings {
+    /// Primary rays only, on every core with the best kernel this CPU
+    /// runs, for a scene of diagonal `scene_diagonal`; the other fields are
+    /// meant to be set with struct update syntax.
+    pub fn primary(scene_diagonal: f32) -> RenderSettings {
+        RenderSettings {
+            shade: false,
+            shadows: false,
+            light: DEFAULT_LIGHT,
+            threads: std::thread::available_parallelism().map_or(1, |n| n.get()),
+            isa: Isa::detect(),
+            scene_diagonal,
+            reflections: 0,
+            reflective: ReflectRule::All,
+            reflectance: 0.6,
+            voxel_colors: false,
+        }
+    }
+}
+
+/// Direction towards the light unless one is given (the Embree
+/// yardstick's default).
+pub const DEFAULT_LIGHT: Vec3 = Vec3::new(0.3, 1.0, 0.2);
+
 /// One rendered frame.
 #[derive(Clone, Debug)]
 pub struct Frame {

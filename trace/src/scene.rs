@@ -25,20 +25,17 @@ pub enum TopNode {
 /// The high-level BSP: everything the kernel needs before any voxel.
 #[derive(Clone, Debug)]
 pub struct TopLevel {
-    pub root: Aabb,
     pub nodes: Vec<TopNode>,
     /// Per node, the bounds of the geometry below it (each voxel's content
     /// box, united upwards; empty for empty space): the kernel walks the
     /// BSP as a hierarchy of these boxes, so rays through the empty part
     /// of a cell skip it.
     pub boxes: Vec<Aabb>,
-    pub voxel_count: u32,
 }
 
 impl TopLevel {
     pub fn from_manifest(m: &Manifest) -> TopLevel {
         TopLevel {
-            root: m.root_bounds,
             boxes: content_boxes(m),
             nodes: m
                 .nodes
@@ -58,7 +55,6 @@ impl TopLevel {
                     BspNode::Leaf { voxel } => TopNode::Leaf { voxel },
                 })
                 .collect(),
-            voxel_count: m.voxels.len() as u32,
         }
     }
 }
@@ -251,12 +247,6 @@ impl ResidentSource {
             .map(|id| Ok(Arc::new(PreparedVoxel::new(id, &db.load_voxel(id)?))))
             .collect::<Result<Vec<_>, DbError>>()?;
         Ok(ResidentSource { voxels })
-    }
-
-    pub fn from_voxels(voxels: Vec<PreparedVoxel>) -> ResidentSource {
-        ResidentSource {
-            voxels: voxels.into_iter().map(Arc::new).collect(),
-        }
     }
 
     pub fn bytes(&self) -> usize {

@@ -92,16 +92,9 @@ fn isas() -> Vec<Isa> {
 
 fn settings(isa: Isa, m: &Model) -> RenderSettings {
     RenderSettings {
-        shade: false,
-        shadows: false,
-        light: Vec3::new(0.3, 1.0, 0.2),
         threads: 2,
         isa,
-        scene_diagonal: m.db.manifest.model_bounds.diagonal(),
-        reflections: 0,
-        reflective: dray_trace::render::ReflectRule::All,
-        reflectance: 0.5,
-        voxel_colors: false,
+        ..RenderSettings::primary(m.db.manifest.model_bounds.diagonal())
     }
 }
 

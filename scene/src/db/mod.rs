@@ -208,18 +208,19 @@ pub fn intersect<'v>(
                 right,
             } => {
                 let (lc, rc) = cell.split(axis as usize, pos);
-                let li = lc.ray_interval(ray, 0.0, tmax);
-                let ri = rc.ray_interval(ray, 0.0, tmax);
-                let mut kids: Vec<(u32, Aabb, f32, f32)> = Vec::with_capacity(2);
-                if let Some((a, b)) = li {
-                    kids.push((left, lc, a, b));
-                }
-                if let Some((a, b)) = ri {
-                    kids.push((right, rc, a, b));
-                }
+                let l = lc
+                    .ray_interval(ray, 0.0, tmax)
+                    .map(|(a, b)| (left, lc, a, b));
+                let r = rc
+                    .ray_interval(ray, 0.0, tmax)
+                    .map(|(a, b)| (right, rc, a, b));
                 // Push the far child first so the near one is popped first.
-                kids.sort_by(|x, y| y.2.total_cmp(&x.2));
-                stack.extend(kids);
+                let (near, far) = match (l, r) {
+                    (Some(x), Some(y)) if y.2 < x.2 => (Some(y), Some(x)),
+                    (x, y) => (x, y),
+                };
+                stack.extend(far);
+                stack.extend(near);
             }
         }
     }

@@ -108,15 +108,6 @@ impl SpillFile {
         Ok(())
     }
 
-    pub fn read_all(&self) -> io::Result<Vec<Triangle>> {
-        let mut all = Vec::with_capacity(self.count as usize);
-        self.for_each(|t| {
-            all.push(t);
-            Ok::<(), io::Error>(())
-        })?;
-        Ok(all)
-    }
-
     pub fn remove(self) {
         // Best effort: the whole spill directory is removed at the end anyway.
         let _ = std::fs::remove_file(&self.path);
@@ -145,7 +136,12 @@ mod tests {
             w.push(&Triangle { id: i, ..t }).unwrap();
         }
         let f = w.finish().unwrap();
-        let all = f.read_all().unwrap();
+        let mut all = Vec::new();
+        f.for_each(|t| {
+            all.push(t);
+            Ok::<(), io::Error>(())
+        })
+        .unwrap();
         assert_eq!(all.len(), 5000);
         assert!(all.iter().enumerate().all(|(i, x)| x.id == i as u32));
     }
