@@ -167,6 +167,7 @@ pub fn build_stream(
         stream.count(),
     );
     let mut walk = Vec::new();
+    let mut pending = 0u64;
     stream.for_each(&mut |t| {
         if ctx.progress.is_cancelled() {
             return Err(PreprocessError::Cancelled);
@@ -191,9 +192,15 @@ pub fn build_stream(
                 }
             }
         }
-        ctx.progress.advance(1);
+        // Report in batches: this closure runs once per triangle.
+        pending += 1;
+        if pending == 4096 {
+            ctx.progress.advance(pending);
+            pending = 0;
+        }
         Ok(())
     })?;
+    ctx.progress.advance(pending);
     let mut chunks = Vec::with_capacity(writers.len());
     for w in writers {
         chunks.push(w.finish()?);

@@ -278,6 +278,7 @@ pub fn preprocess(
                 e.into()
             }
         })?;
+        progress.advance(pending);
         inputs.push(InputModel {
             path: path.display().to_string(),
             triangles: summary.triangles,
