@@ -2,6 +2,7 @@
 
 use anyhow::{bail, Context, Result};
 use clap::{Parser, Subcommand};
+use dray_protocol::Reflective;
 use dray_scene::db::info::DbInfo;
 use dray_scene::db::verify::verify;
 use dray_scene::db::Database;
@@ -9,7 +10,7 @@ use dray_scene::generate::{generate_plant, PlantParams};
 use dray_scene::preprocess::{self, preprocess, PreprocessOptions};
 use dray_scene::progress::Progress;
 use dray_trace::camera::Camera;
-use dray_trace::render::{render_repeated, Isa, ReflectRule, RenderSettings};
+use dray_trace::render::{render_repeated, Isa, RenderSettings};
 use dray_trace::scene::{ResidentSource, TopLevel};
 use glam::Vec3;
 use std::path::{Path, PathBuf};
@@ -130,7 +131,7 @@ struct RenderArgs {
     /// Which surfaces reflect: all, ids:A-B (original triangle ids, B
     /// exclusive) or color:R,G,B (vertex color).
     #[arg(long, default_value = "all")]
-    reflective: ReflectRule,
+    reflective: Reflective,
     /// Share of the light a reflective surface mirrors (0-1).
     #[arg(long, default_value_t = 0.6)]
     reflectance: f32,
@@ -461,7 +462,7 @@ fn render(a: &RenderArgs) -> Result<()> {
         },
         isa: a.isa.unwrap_or(defaults.isa),
         reflections: a.reflections,
-        reflective: a.reflective.clone(),
+        reflective: dray_actors::settings::reflect_rule(&a.reflective),
         reflectance: a.reflectance,
         voxel_colors: a.voxel_colors,
         ..defaults

@@ -1,2 +1,87 @@
-//! dray-actors: Scheduler, FrameAssigner, Prefetcher, VoxelStore, Client and
-//! Display (DESIGN.md). They arrive with the distributed renderer issue.
+//! dray-actors: the distributed renderer (DESIGN.md, the paper's system).
+//!
+//! Every actor is an `async fn run_*(mailbox, options)` that talks only
+//! through the [`dray_runtime::Bus`]: the same code runs over QUIC between
+//! processes and over the in-process transport in tests and `dray sim`.
+//!
+//! | actor | node | module |
+//! |---|---|---|
+//! | VoxelStore | `store-I` | [`store`] |
+//! | Client (cache, loader, render threads) | `client-I` | [`client`] |
+//! | Scheduler, FrameAssigner, Prefetcher | `scheduler` | [`scheduler`] |
+//! | Display (frames, metrics, camera path) | `display` | [`display`] |
+//!
+//! Message flow: the display sends one [`Message::CameraUpdate`] per frame to
+//! the frame assigner, which releases frames to the scheduler
+//! ([`Message::FrameStart`]) once the previous one is fully assigned
+//! ([`Message::FrameAssigned`]). Clients ask the scheduler for tiles
+//! ([`Message::RequestWork`]), fetch voxels from the store of each voxel's
+//! shard, send the pixels to the display ([`Message::TileDone`]) and a
+//! report to the scheduler ([`Message::TileReport`]). The scheduler tells
+//! the display when a frame is complete ([`Message::FrameDone`]) and the
+//! prefetcher who rendered which tile ([`Message::TileOwners`]).
+//!
+//! [`Message::CameraUpdate`]: dray_protocol::Message::CameraUpdate
+//! [`Message::FrameStart`]: dray_protocol::Message::FrameStart
+//! [`Message::FrameAssigned`]: dray_protocol::Message::FrameAssigned
+//! [`Message::RequestWork`]: dray_protocol::Message::RequestWork
+//! [`Message::TileDone`]: dray_protocol::Message::TileDone
+//! [`Message::TileReport`]: dray_protocol::Message::TileReport
+//! [`Message::FrameDone`]: dray_protocol::Message::FrameDone
+//! [`Message::TileOwners`]: dray_protocol::Message::TileOwners
+
+pub mod client;
+pub mod display;
+pub mod names;
+pub mod scheduler;
+pub mod settings;
+pub mod store;
+
+pub use names::Shard;
+
+/// Why an actor stopped with an error.
+#[derive(Debug, thiserror::Error)]
+pub enum ActorError {
+    /// A message could not be sent.
+    #[error("{actor}: sending to {to} failed: {source}")]
+    Send {
+        /// The sending actor.
+        actor: String,
+        /// The destination.
+        to: String,
+        /// What the bus said.
+        source: dray_runtime::SendError,
+    },
+    /// The voxel database could not be used.
+    #[error("{actor}: database {path}: {message}")]
+    Database {
+        /// The actor.
+        actor: String,
+        /// The database directory.
+        path: String,
+        /// What is wrong.
+        message: String,
+    },
+    /// A peer sent something unusable (a manifest that does not parse, a
+    /// voxel that keeps failing its checksum).
+    #[error("{actor}: {message}")]
+    Peer {
+        /// The actor.
+        actor: String,
+        /// What happened.
+        message: String,
+    },
+    /// Files (frames, metrics) could not be written.
+    #[error("{actor}: {path}: {source}")]
+    Io {
+        /// The actor.
+        actor: String,
+        /// The file.
+        path: String,
+        /// What happened.
+        source: std::io::Error,
+    },
+    /// The bus was dropped before the actor was told to stop.
+    #[error("{0}: the bus closed")]
+    BusClosed(String),
+}

@@ -13,6 +13,7 @@
 //!
 //! The preprocessing parameters live with the preprocessor in `dray-scene`.
 
+pub use dray_protocol::Reflective;
 use serde::Deserialize;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -68,13 +69,16 @@ pub struct Config {
     /// What to render.
     pub render: RenderConfig,
     /// The scheduler node.
-    pub scheduler: NodeConfig,
+    pub scheduler: SchedulerConfig,
     /// The display node.
     pub display: DisplayConfig,
     /// The voxel stores (at least one); each serves a shard.
-    pub stores: Vec<NodeConfig>,
+    pub stores: Vec<StoreConfig>,
     /// The render clients.
     pub clients: ClientsConfig,
+    /// The prefetcher.
+    #[serde(default)]
+    pub prefetch: PrefetchConfig,
     /// Link shaping per link class.
     #[serde(default)]
     pub links: LinksConfig,
@@ -113,21 +117,6 @@ fn default_fov() -> f32 {
     45.0
 }
 
-/// A point light.
-#[derive(Clone, Copy, Debug, Deserialize, PartialEq)]
-#[serde(deny_unknown_fields)]
-pub struct LightConfig {
-    /// Position.
-    pub position: [f32; 3],
-    /// Linear RGB intensity.
-    #[serde(default = "default_intensity")]
-    pub intensity: [f32; 3],
-}
-
-fn default_intensity() -> [f32; 3] {
-    [1.0, 1.0, 1.0]
-}
-
 /// What to render.
 #[derive(Clone, Debug, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
@@ -145,26 +134,128 @@ pub struct RenderConfig {
     /// Reflection recursion depth.
     #[serde(default)]
     pub reflection_depth: u8,
-    /// The first camera.
+    /// Direction towards the distant light (need not be normalized).
+    #[serde(default = "default_light")]
+    pub light_dir: [f32; 3],
+    /// Which surfaces are mirrors: `all`, `ids:A-B` or `color:R,G,B`.
+    #[serde(default = "default_reflective", deserialize_with = "reflective")]
+    pub reflective: Reflective,
+    /// Share of the light a mirror reflects, in [0, 1].
+    #[serde(default = "default_reflectance")]
+    pub reflectance: f32,
+    /// Color each voxel differently (the paper's Figure 5).
+    #[serde(default)]
+    pub voxel_colors: bool,
+    /// Also send per-pixel depth and primitive ids to the display (for
+    /// comparisons with `dray render`).
+    #[serde(default)]
+    pub depth_and_ids: bool,
+    /// The camera when there is no camera path.
     pub camera: CameraConfig,
-    /// The light.
-    pub light: LightConfig,
-    /// A camera path to follow (one camera per frame); none: the display's
-    /// user moves the camera.
+    /// A camera path to follow (keyframes, TOML; one camera per frame).
     #[serde(default)]
     pub camera_path: Option<PathBuf>,
+    /// Frames of the fixed camera to render when there is no camera path.
+    #[serde(default = "default_frames")]
+    pub frames: u32,
+}
+
+fn default_light() -> [f32; 3] {
+    [0.3, 1.0, 0.2]
+}
+fn default_reflective() -> Reflective {
+    Reflective::All
+}
+fn default_reflectance() -> f32 {
+    0.6
+}
+fn default_frames() -> u32 {
+    1
+}
+
+fn reflective<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Reflective, D::Error> {
+    let s = String::deserialize(d)?;
+    s.parse().map_err(serde::de::Error::custom)
 }
 
 fn default_tile() -> u32 {
     32
 }
 
-/// A node that others dial.
+/// The scheduler node (with the frame assigner and the prefetcher).
 #[derive(Clone, Debug, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
-pub struct NodeConfig {
+pub struct SchedulerConfig {
     /// `host:port` it listens on (QUIC, UDP).
     pub address: String,
+    /// Give a tile preferably to the client that rendered it last frame.
+    #[serde(default = "yes")]
+    pub affinity: bool,
+    /// Hand out the costliest tiles (by last frame's time) first.
+    #[serde(default = "yes")]
+    pub costliest_first: bool,
+    /// A tile not done this long after its assignment (and at least 8
+    /// times the frame's median tile time) is given to another client, ms.
+    #[serde(default = "default_deadline")]
+    pub tile_deadline_ms: u64,
+}
+
+fn yes() -> bool {
+    true
+}
+fn default_deadline() -> u64 {
+    2000
+}
+
+/// A voxel store.
+#[derive(Clone, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct StoreConfig {
+    /// `host:port` it listens on (QUIC, UDP).
+    pub address: String,
+    /// The voxels it serves, `I/N`: ids equal to I modulo N. Default: store
+    /// i of n serves `i/n`.
+    #[serde(default)]
+    pub shard: Option<String>,
+    /// Most voxel reads at once.
+    #[serde(default = "default_store_concurrency")]
+    pub max_concurrent: u32,
+}
+
+fn default_store_concurrency() -> u32 {
+    16
+}
+
+/// The prefetcher.
+#[derive(Clone, Copy, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct PrefetchConfig {
+    /// Send clients hints for the predicted next frame.
+    #[serde(default = "yes")]
+    pub enabled: bool,
+    /// One sample ray per `step` x `step` pixels.
+    #[serde(default = "default_prefetch_step")]
+    pub step: u32,
+    /// Voxels along each sample ray to hint, nearest first.
+    #[serde(default = "default_prefetch_depth")]
+    pub voxels_per_ray: u32,
+}
+
+impl Default for PrefetchConfig {
+    fn default() -> Self {
+        PrefetchConfig {
+            enabled: true,
+            step: default_prefetch_step(),
+            voxels_per_ray: default_prefetch_depth(),
+        }
+    }
+}
+
+fn default_prefetch_step() -> u32 {
+    8
+}
+fn default_prefetch_depth() -> u32 {
+    2
 }
 
 /// The display node.
@@ -179,6 +270,14 @@ pub struct DisplayConfig {
     /// Directory for PNG frames and the metrics CSV; none: not written.
     #[serde(default)]
     pub output: Option<PathBuf>,
+    /// Frames in flight: the display sends the camera of frame k+n while
+    /// frame k is not yet complete (double buffering at 2).
+    #[serde(default = "default_frames_ahead")]
+    pub frames_ahead: u32,
+}
+
+fn default_frames_ahead() -> u32 {
+    2
 }
 
 /// What a client does when a packet needs a voxel it does not have.
@@ -199,17 +298,18 @@ pub struct ClientsConfig {
     pub count: u32,
     /// Render threads per client.
     pub threads: u32,
-    /// Voxel cache budget per client, MB (10^6 bytes).
-    pub cache_mb: u64,
+    /// Voxel cache budget per client, MB (10^6 bytes; fractions allowed).
+    pub cache_mb: f64,
     /// Miss mode.
     #[serde(default = "default_miss")]
     pub miss_mode: MissMode,
     /// Most voxel fetches in flight per client.
     #[serde(default = "default_inflight")]
     pub max_inflight_fetches: u32,
-    /// Most tiles assigned to one client at once.
-    #[serde(default = "default_tiles_in_flight")]
-    pub tiles_in_flight: u32,
+    /// Tiles a client asks for beyond those its threads are rendering, so
+    /// it never idles waiting for the scheduler.
+    #[serde(default = "default_tiles_ahead")]
+    pub tiles_ahead: u32,
     /// Host the clients bind (they dial out; the port is picked).
     #[serde(default = "default_bind")]
     pub bind: String,
@@ -221,8 +321,8 @@ fn default_miss() -> MissMode {
 fn default_inflight() -> u32 {
     64
 }
-fn default_tiles_in_flight() -> u32 {
-    4
+fn default_tiles_ahead() -> u32 {
+    1
 }
 fn default_bind() -> String {
     "127.0.0.1".into()
@@ -413,15 +513,57 @@ impl Config {
                 format!("{} is over 16", r.reflection_depth),
             ));
         }
-        check_camera("render.camera", &r.camera)?;
-        if !r.light.position.iter().all(|x| x.is_finite())
-            || !r.light.intensity.iter().all(|x| x.is_finite() && *x >= 0.0)
-        {
+        let tiles =
+            r.width.div_ceil(r.tile_size) as usize * r.height.div_ceil(r.tile_size) as usize;
+        if tiles > dray_protocol::MAX_FRAME_TILES {
             return Err(invalid(
-                "render.light",
-                "position and intensity must be finite, intensity not negative",
+                "render.tile_size",
+                format!(
+                    "{} gives {tiles} tiles per frame, more than {}",
+                    r.tile_size,
+                    dray_protocol::MAX_FRAME_TILES
+                ),
             ));
         }
+        check_camera("render.camera", &r.camera)?;
+        if !r.light_dir.iter().all(|x| x.is_finite()) || r.light_dir == [0.0; 3] {
+            return Err(invalid(
+                "render.light_dir",
+                "must be a finite, non-zero direction",
+            ));
+        }
+        if !(0.0..=1.0).contains(&r.reflectance) {
+            return Err(invalid(
+                "render.reflectance",
+                format!("{} is not in [0, 1]", r.reflectance),
+            ));
+        }
+        if r.frames == 0 {
+            return Err(invalid("render.frames", "must be at least 1"));
+        }
+        if self.display.frames_ahead == 0 || self.display.frames_ahead > 16 {
+            return Err(invalid(
+                "display.frames_ahead",
+                format!("{} is not in 1..=16", self.display.frames_ahead),
+            ));
+        }
+        if self.scheduler.tile_deadline_ms == 0 {
+            return Err(invalid("scheduler.tile_deadline_ms", "must be at least 1"));
+        }
+        let p = &self.prefetch;
+        if p.step == 0 || p.step > 256 {
+            return Err(invalid(
+                "prefetch.step",
+                format!("{} is not in 1..=256", p.step),
+            ));
+        }
+        if p.voxels_per_ray == 0 || p.voxels_per_ray > 64 {
+            return Err(invalid(
+                "prefetch.voxels_per_ray",
+                format!("{} is not in 1..=64", p.voxels_per_ray),
+            ));
+        }
+
         if self.scene.database.as_os_str().is_empty() {
             return Err(invalid("scene.database", "is empty"));
         }
@@ -449,7 +591,14 @@ impl Config {
             let key = format!("stores[{i}].address");
             let a = parse_addr(&key, &s.address)?;
             addrs.push((key, a));
+            if s.max_concurrent == 0 {
+                return Err(invalid(
+                    format!("stores[{i}].max_concurrent"),
+                    "must be at least 1",
+                ));
+            }
         }
+        self.shards()?;
         for (i, (ka, a)) in addrs.iter().enumerate() {
             if a.port() == 0 {
                 return Err(invalid(ka.clone(), "port 0: other nodes could not find it"));
@@ -469,13 +618,13 @@ impl Config {
                 format!("{} is not in 1..=1024", c.threads),
             ));
         }
-        if c.cache_mb == 0 {
+        if !(c.cache_mb.is_finite() && c.cache_mb > 0.0) {
             return Err(invalid(
                 "clients.cache_mb",
-                "a zero cache could not hold a single voxel",
+                format!("{}: a cache must hold at least one voxel", c.cache_mb),
             ));
         }
-        if c.cache_mb > 1 << 20 {
+        if c.cache_mb > (1u64 << 20) as f64 {
             return Err(invalid(
                 "clients.cache_mb",
                 format!("{} MB is more than 1 TB", c.cache_mb),
@@ -487,8 +636,11 @@ impl Config {
                 "must be at least 1",
             ));
         }
-        if c.tiles_in_flight == 0 {
-            return Err(invalid("clients.tiles_in_flight", "must be at least 1"));
+        if c.tiles_ahead > 64 {
+            return Err(invalid(
+                "clients.tiles_ahead",
+                format!("{} is over 64", c.tiles_ahead),
+            ));
         }
         if c.bind.parse::<std::net::IpAddr>().is_err() {
             return Err(invalid(
@@ -525,7 +677,58 @@ impl Config {
 
     /// The client cache budget in bytes.
     pub fn cache_bytes(&self) -> u64 {
-        self.clients.cache_mb * 1_000_000
+        (self.clients.cache_mb * 1e6) as u64
+    }
+
+    /// Each store's shard `(index, count)`, in order: as configured, or
+    /// `i/n` for store i of n. Every voxel id must be served by some store.
+    pub fn shards(&self) -> Result<Vec<(u32, u32)>, ConfigError> {
+        let n = self.stores.len() as u32;
+        let mut out = Vec::with_capacity(self.stores.len());
+        for (i, s) in self.stores.iter().enumerate() {
+            let key = format!("stores[{i}].shard");
+            let shard = match &s.shard {
+                None => (i as u32, n),
+                Some(text) => {
+                    let bad = || {
+                        invalid(
+                            key.clone(),
+                            format!("{text:?} is not of the form I/N with I < N <= 1024"),
+                        )
+                    };
+                    let (a, b) = text.split_once('/').ok_or_else(bad)?;
+                    let (a, b): (u32, u32) = (
+                        a.trim().parse().map_err(|_| bad())?,
+                        b.trim().parse().map_err(|_| bad())?,
+                    );
+                    if b == 0 || a >= b || b > 1024 {
+                        return Err(bad());
+                    }
+                    (a, b)
+                }
+            };
+            out.push(shard);
+        }
+        // Every residue of the common modulus must be served.
+        let lcm = out.iter().fold(1u64, |l, &(_, c)| {
+            let (mut a, mut b) = (l, u64::from(c));
+            while b != 0 {
+                (a, b) = (b, a % b);
+            }
+            l / a * u64::from(c)
+        });
+        if lcm > 1 << 16 {
+            return Err(invalid("stores", "shard counts are too many or too mixed"));
+        }
+        for r in 0..lcm as u32 {
+            if !out.iter().any(|&(i, c)| r % c == i) {
+                return Err(invalid(
+                    "stores",
+                    format!("no store serves the voxels whose id is {r} modulo {lcm}"),
+                ));
+            }
+        }
+        Ok(out)
     }
 
     /// Every node's name: `scheduler`, `display`, `store-I`, `client-I`.

@@ -53,7 +53,27 @@ fn mistakes_name_their_key() {
     assert_names(
         broken("cache_mb = 256", "cache_mb = 0"),
         "clients.cache_mb",
-        "zero cache",
+        "at least one voxel",
+    );
+    assert_names(
+        broken("# shard = \"1/2\"", "shard = \"0/2\""),
+        "stores",
+        "1 modulo 2",
+    );
+    assert_names(
+        broken("# shard = \"1/2\"", "shard = \"2/2\""),
+        "stores[1].shard",
+        "I/N",
+    );
+    assert_names(
+        broken("light_dir = [0.3, 1.0, 0.2]", "light_dir = [0.0, 0.0, 0.0]"),
+        "render.light_dir",
+        "non-zero",
+    );
+    assert_names(
+        broken("reflective = \"all\"", "reflective = \"some\""),
+        "reflective",
+        "not a reflection rule",
     );
     assert_names(
         broken("address = \"127.0.0.1:7411\"", "address = \"localhost\""),

@@ -32,12 +32,13 @@ pub fn one_of_each(voxel_bytes: usize) -> Vec<Message> {
             width: 640,
             height: 480,
             settings: RenderSettings {
+                shade: true,
                 shadows: true,
                 reflection_depth: 2,
-                light: Light {
-                    position: [10.0, 20.0, -5.0],
-                    intensity: [1.0, 0.9, 0.8],
-                },
+                light_dir: [0.3, 1.0, 0.2],
+                reflective: Reflective::Ids { start: 10, end: 20 },
+                reflectance: 0.6,
+                voxel_colors: false,
                 want_depth: true,
                 want_prim_ids: true,
             },
@@ -62,6 +63,7 @@ pub fn one_of_each(voxel_bytes: usize) -> Vec<Message> {
                 voxels_touched: 17,
                 misses: 3,
                 bytes_fetched: 123_456,
+                stall_us: 77,
             },
         }),
         Message::FetchVoxel(FetchVoxel { id: 42 }),
@@ -86,12 +88,15 @@ pub fn one_of_each(voxel_bytes: usize) -> Vec<Message> {
                 time_us: 40_000,
                 misses: 12,
                 bytes_fetched: 9_999_999,
+                voxels_touched: 4_000,
+                stall_us: 5,
                 clients: BoundedVec::new(vec![ClientFrameStats {
                     node: Name::new("client-0").expect("constant name is valid"),
                     tiles: 300,
                     rays: 1_000_000,
                     misses: 12,
                     bytes_fetched: 9_999_999,
+                    stall_us: 5,
                 }])
                 .expect("one entry is under the bound"),
             },
@@ -104,6 +109,52 @@ pub fn one_of_each(voxel_bytes: usize) -> Vec<Message> {
         Message::Pong(Ping { seq: 1 }),
         Message::Shutdown(Shutdown {
             reason: "test over".into(),
+        }),
+        Message::FetchManifest(FetchManifest {}),
+        Message::ManifestData(ManifestData {
+            data: Blob((0..4096).map(|i| (i % 13) as u8).collect()),
+        }),
+        Message::TileReport(TileReport {
+            frame: 7,
+            tile,
+            stats: TileStats {
+                rays: 1024,
+                time_us: 99,
+                voxels_touched: 3,
+                misses: 1,
+                bytes_fetched: 4_000,
+                stall_us: 10,
+            },
+        }),
+        Message::FrameStart(FrameStart {
+            frame: 8,
+            camera: camera(),
+            width: 640,
+            height: 480,
+            settings: RenderSettings {
+                shade: true,
+                shadows: false,
+                reflection_depth: 0,
+                light_dir: [0.3, 1.0, 0.2],
+                reflective: Reflective::All,
+                reflectance: 0.5,
+                voxel_colors: true,
+                want_depth: false,
+                want_prim_ids: false,
+            },
+        }),
+        Message::FrameAssigned(FrameAssigned { frame: 8 }),
+        Message::TileOwners(TileOwners {
+            frame: 7,
+            width: 64,
+            height: 64,
+            tile_size: 32,
+            owners: PackedU32(vec![0, 1, u32::MAX, 0]),
+            clients: BoundedVec::new(vec![
+                Name::new("client-0").expect("constant name is valid"),
+                Name::new("client-1").expect("constant name is valid"),
+            ])
+            .expect("two entries are under the bound"),
         }),
     ]
 }

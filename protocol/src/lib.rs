@@ -45,6 +45,8 @@ pub const MAX_VOXEL_BYTES: usize = 64 << 20;
 pub const MAX_TILE_SIDE: u32 = 256;
 /// Largest image side, in pixels.
 pub const MAX_IMAGE_SIDE: u32 = 16384;
+/// Most tiles in one frame.
+pub const MAX_FRAME_TILES: usize = 1 << 16;
 /// Most voxel ids in one prefetch hint.
 pub const MAX_PREFETCH_IDS: usize = 16384;
 /// Most per-client entries in one frame's statistics.

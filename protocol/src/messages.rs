@@ -40,24 +40,76 @@ pub struct Camera {
     pub fov_y_deg: f32,
 }
 
-/// A point light.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct Light {
-    /// Position in world space.
-    pub position: [f32; 3],
-    /// Linear RGB intensity.
-    pub intensity: [f32; 3],
+/// Which surfaces are mirrors (models carry no materials).
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Reflective {
+    /// Every surface.
+    All,
+    /// Triangles whose ORIGINAL id is in `start..end`.
+    Ids {
+        /// First id.
+        start: u32,
+        /// One past the last id.
+        end: u32,
+    },
+    /// Surfaces of this vertex color (within a few units per channel).
+    Color([u8; 3]),
 }
 
-/// How a tile is shaded.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+impl std::str::FromStr for Reflective {
+    type Err = String;
+
+    /// `all`, `ids:A-B` (B exclusive, A < B) or `color:R,G,B`.
+    fn from_str(s: &str) -> Result<Self, String> {
+        let bad = || format!("{s:?} is not a reflection rule (all, ids:A-B or color:R,G,B)");
+        if s == "all" {
+            return Ok(Reflective::All);
+        }
+        if let Some(r) = s.strip_prefix("ids:") {
+            let (a, b) = r.split_once('-').ok_or_else(bad)?;
+            let (start, end) = (
+                a.trim().parse().map_err(|_| bad())?,
+                b.trim().parse().map_err(|_| bad())?,
+            );
+            return if start < end {
+                Ok(Reflective::Ids { start, end })
+            } else {
+                Err(bad())
+            };
+        }
+        if let Some(c) = s.strip_prefix("color:") {
+            let v: Vec<u8> = c
+                .split(',')
+                .map(|x| x.trim().parse())
+                .collect::<Result<_, _>>()
+                .map_err(|_| bad())?;
+            if let [r, g, b] = v[..] {
+                return Ok(Reflective::Color([r, g, b]));
+            }
+        }
+        Err(bad())
+    }
+}
+
+/// How a tile is shaded: exactly what `dray render` takes, so that a frame
+/// rendered by the cluster equals the one rendered in one process.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct RenderSettings {
+    /// Shade (vertex normals and colors, one distant light); otherwise the
+    /// pixels are a grey depth image.
+    pub shade: bool,
     /// Trace shadow rays to the light.
     pub shadows: bool,
     /// Reflection recursion depth (0: none).
     pub reflection_depth: u8,
-    /// The light.
-    pub light: Light,
+    /// Direction towards the distant light (need not be normalized).
+    pub light_dir: [f32; 3],
+    /// Which surfaces reflect.
+    pub reflective: Reflective,
+    /// Share of the light a reflective surface mirrors, in [0, 1].
+    pub reflectance: f32,
+    /// Color each voxel differently (the paper's Figure 5).
+    pub voxel_colors: bool,
     /// Also return per-pixel depth.
     pub want_depth: bool,
     /// Also return per-pixel primitive ids.
@@ -101,6 +153,9 @@ pub struct TileStats {
     pub misses: u32,
     /// Bytes of voxels fetched for this tile.
     pub bytes_fetched: u64,
+    /// Time the tile had no packet to trace because every one waited for
+    /// a voxel, microseconds.
+    pub stall_us: u64,
 }
 
 /// A client returns a rendered tile.
@@ -167,6 +222,8 @@ pub struct ClientFrameStats {
     pub misses: u64,
     /// Voxel bytes it fetched.
     pub bytes_fetched: u64,
+    /// Its tiles' stall time, microseconds.
+    pub stall_us: u64,
 }
 
 /// Statistics of a finished frame.
@@ -184,6 +241,10 @@ pub struct FrameStats {
     pub misses: u64,
     /// Voxel bytes fetched.
     pub bytes_fetched: u64,
+    /// Distinct voxels entered, summed over tiles (for the cache hit rate).
+    pub voxels_touched: u64,
+    /// Tiles' stall time, summed, microseconds.
+    pub stall_us: u64,
     /// Per client.
     pub clients: BoundedVec<ClientFrameStats, MAX_STATS_CLIENTS>,
 }
@@ -220,6 +281,70 @@ pub struct Shutdown {
     pub reason: String,
 }
 
+/// A client asks a store for the database's manifest (the high-level BSP
+/// and the voxel table), so that clients need no copy of the database.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct FetchManifest {}
+
+/// A store answers with the manifest file's bytes exactly as stored.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ManifestData {
+    /// The manifest file.
+    pub data: Blob,
+}
+
+/// A client tells the scheduler that a tile is done (its pixels went to
+/// the display in a [`TileDone`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct TileReport {
+    /// Frame number.
+    pub frame: u64,
+    /// The tile.
+    pub tile: TileRect,
+    /// Costs.
+    pub stats: TileStats,
+}
+
+/// The frame assigner releases a frame to the scheduler.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FrameStart {
+    /// Frame number (increasing).
+    pub frame: u64,
+    /// Its camera.
+    pub camera: Camera,
+    /// Image width in pixels.
+    pub width: u32,
+    /// Image height in pixels.
+    pub height: u32,
+    /// Shading.
+    pub settings: RenderSettings,
+}
+
+/// The scheduler has handed out every tile of a frame at least once.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct FrameAssigned {
+    /// Frame number.
+    pub frame: u64,
+}
+
+/// Which client rendered each tile of a frame (for the prefetcher, which
+/// sends each client hints for the tiles it will probably get next).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TileOwners {
+    /// Frame number.
+    pub frame: u64,
+    /// Image width.
+    pub width: u32,
+    /// Image height.
+    pub height: u32,
+    /// Tile side.
+    pub tile_size: u32,
+    /// Per tile, row-major, an index into `clients` (u32::MAX: none).
+    pub owners: PackedU32,
+    /// The client nodes.
+    pub clients: BoundedVec<Name, MAX_STATS_CLIENTS>,
+}
+
 /// Every actor message. The variant order is the wire tag: append only.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub enum Message {
@@ -247,6 +372,18 @@ pub enum Message {
     Pong(Ping),
     /// Any → any.
     Shutdown(Shutdown),
+    /// Client → store.
+    FetchManifest(FetchManifest),
+    /// Store → client.
+    ManifestData(ManifestData),
+    /// Client → scheduler.
+    TileReport(TileReport),
+    /// Frame assigner → scheduler.
+    FrameStart(FrameStart),
+    /// Scheduler → frame assigner.
+    FrameAssigned(FrameAssigned),
+    /// Scheduler → prefetcher.
+    TileOwners(TileOwners),
 }
 
 /// The kind of a message, without its contents.
@@ -276,13 +413,25 @@ pub enum MessageKind {
     Pong,
     /// [`Message::Shutdown`].
     Shutdown,
+    /// [`Message::FetchManifest`].
+    FetchManifest,
+    /// [`Message::ManifestData`].
+    ManifestData,
+    /// [`Message::TileReport`].
+    TileReport,
+    /// [`Message::FrameStart`].
+    FrameStart,
+    /// [`Message::FrameAssigned`].
+    FrameAssigned,
+    /// [`Message::TileOwners`].
+    TileOwners,
     /// Not an actor message: the connection handshake.
     Handshake,
 }
 
 impl MessageKind {
     /// Every actor message kind, in wire tag order.
-    pub const ALL: [MessageKind; 12] = [
+    pub const ALL: [MessageKind; 18] = [
         MessageKind::RequestWork,
         MessageKind::AssignTile,
         MessageKind::TileDone,
@@ -295,6 +444,12 @@ impl MessageKind {
         MessageKind::Ping,
         MessageKind::Pong,
         MessageKind::Shutdown,
+        MessageKind::FetchManifest,
+        MessageKind::ManifestData,
+        MessageKind::TileReport,
+        MessageKind::FrameStart,
+        MessageKind::FrameAssigned,
+        MessageKind::TileOwners,
     ];
 
     /// The kind whose wire tag (first body byte) is `tag`.
@@ -312,12 +467,23 @@ impl MessageKind {
             | MessageKind::FetchVoxel
             | MessageKind::CameraUpdate
             | MessageKind::Ping
-            | MessageKind::Pong => ENVELOPE_OVERHEAD,
+            | MessageKind::Pong
+            | MessageKind::FetchManifest
+            | MessageKind::TileReport
+            | MessageKind::FrameStart
+            | MessageKind::FrameAssigned => ENVELOPE_OVERHEAD,
+            MessageKind::ManifestData => BULK_FRAME_MAX,
+            MessageKind::TileOwners => {
+                ENVELOPE_OVERHEAD
+                    + crate::MAX_FRAME_TILES * 4
+                    + 4
+                    + MAX_STATS_CLIENTS * (crate::MAX_NAME_LEN + 1)
+            }
             MessageKind::VoxelError | MessageKind::Shutdown => ENVELOPE_OVERHEAD + text,
             MessageKind::TileDone => ENVELOPE_OVERHEAD + 3 * (tile_px * 4 + 4),
             MessageKind::VoxelLoaded => BULK_FRAME_MAX,
             MessageKind::FrameDone => {
-                ENVELOPE_OVERHEAD + MAX_STATS_CLIENTS * (crate::MAX_NAME_LEN + 1 + 4 * 10)
+                ENVELOPE_OVERHEAD + MAX_STATS_CLIENTS * (crate::MAX_NAME_LEN + 1 + 5 * 10) + 2 * 10
             }
             MessageKind::PrefetchHint => ENVELOPE_OVERHEAD + MAX_PREFETCH_IDS * 4 + 4,
             MessageKind::Handshake => crate::HANDSHAKE_FRAME_MAX,
@@ -327,7 +493,13 @@ impl MessageKind {
     /// Whether this kind travels on its own stream, so that it never delays
     /// the small control messages behind it.
     pub fn is_bulk(self) -> bool {
-        matches!(self, MessageKind::TileDone | MessageKind::VoxelLoaded)
+        matches!(
+            self,
+            MessageKind::TileDone
+                | MessageKind::VoxelLoaded
+                | MessageKind::ManifestData
+                | MessageKind::TileOwners
+        )
     }
 
     /// A short lowercase name, for logs and spans.
@@ -345,6 +517,12 @@ impl MessageKind {
             MessageKind::Ping => "ping",
             MessageKind::Pong => "pong",
             MessageKind::Shutdown => "shutdown",
+            MessageKind::FetchManifest => "fetch_manifest",
+            MessageKind::ManifestData => "manifest_data",
+            MessageKind::TileReport => "tile_report",
+            MessageKind::FrameStart => "frame_start",
+            MessageKind::FrameAssigned => "frame_assigned",
+            MessageKind::TileOwners => "tile_owners",
             MessageKind::Handshake => "handshake",
         }
     }
@@ -388,6 +566,65 @@ fn check_tile(t: &TileRect, width: u32, height: u32) -> Result<(), String> {
     Ok(())
 }
 
+fn check_frame(width: u32, height: u32, s: &RenderSettings) -> Result<(), String> {
+    if width == 0 || height == 0 || width > MAX_IMAGE_SIDE || height > MAX_IMAGE_SIDE {
+        return Err(format!(
+            "image of {width}x{height} is empty or larger than {MAX_IMAGE_SIDE}"
+        ));
+    }
+    if s.reflection_depth > MAX_REFLECTION_DEPTH {
+        return Err(format!(
+            "reflection depth {} is over {MAX_REFLECTION_DEPTH}",
+            s.reflection_depth
+        ));
+    }
+    if !finite(&s.light_dir) || s.light_dir == [0.0; 3] {
+        return Err("light direction is zero or has a non-finite value".into());
+    }
+    if !(0.0..=1.0).contains(&s.reflectance) {
+        return Err(format!("reflectance {} is not in [0, 1]", s.reflectance));
+    }
+    if let Reflective::Ids { start, end } = s.reflective {
+        if start >= end {
+            return Err(format!("reflective id range {start}..{end} is empty"));
+        }
+    }
+    Ok(())
+}
+
+fn check_owners(o: &TileOwners) -> Result<(), String> {
+    if o.tile_size == 0 || o.tile_size > MAX_TILE_SIDE {
+        return Err(format!(
+            "tile size {} is not in 1..={MAX_TILE_SIDE}",
+            o.tile_size
+        ));
+    }
+    if o.width == 0 || o.height == 0 || o.width > MAX_IMAGE_SIDE || o.height > MAX_IMAGE_SIDE {
+        return Err(format!(
+            "image of {}x{} is empty or too large",
+            o.width, o.height
+        ));
+    }
+    let tiles = o.width.div_ceil(o.tile_size) as usize * o.height.div_ceil(o.tile_size) as usize;
+    if tiles > crate::MAX_FRAME_TILES {
+        return Err(format!(
+            "{tiles} tiles, more than {}",
+            crate::MAX_FRAME_TILES
+        ));
+    }
+    if o.owners.0.len() != tiles {
+        return Err(format!(
+            "{} owners for a frame of {tiles} tiles",
+            o.owners.0.len()
+        ));
+    }
+    let n = o.clients.as_slice().len() as u32;
+    if let Some(bad) = o.owners.0.iter().find(|&&c| c != u32::MAX && c >= n) {
+        return Err(format!("owner {bad} but only {n} clients"));
+    }
+    Ok(())
+}
+
 impl Message {
     /// This message's kind.
     pub fn kind(&self) -> MessageKind {
@@ -404,6 +641,12 @@ impl Message {
             Message::Ping(_) => MessageKind::Ping,
             Message::Pong(_) => MessageKind::Pong,
             Message::Shutdown(_) => MessageKind::Shutdown,
+            Message::FetchManifest(_) => MessageKind::FetchManifest,
+            Message::ManifestData(_) => MessageKind::ManifestData,
+            Message::TileReport(_) => MessageKind::TileReport,
+            Message::FrameStart(_) => MessageKind::FrameStart,
+            Message::FrameAssigned(_) => MessageKind::FrameAssigned,
+            Message::TileOwners(_) => MessageKind::TileOwners,
         }
     }
 
@@ -411,29 +654,19 @@ impl Message {
     pub fn validate(&self) -> Result<(), ProtocolError> {
         let kind = self.kind();
         let r = match self {
-            Message::AssignTile(a) => {
-                if a.width == 0
-                    || a.height == 0
-                    || a.width > MAX_IMAGE_SIDE
-                    || a.height > MAX_IMAGE_SIDE
-                {
-                    Err(format!(
-                        "image of {}x{} is empty or larger than {MAX_IMAGE_SIDE}",
-                        a.width, a.height
-                    ))
-                } else if a.settings.reflection_depth > MAX_REFLECTION_DEPTH {
-                    Err(format!(
-                        "reflection depth {} is over {MAX_REFLECTION_DEPTH}",
-                        a.settings.reflection_depth
-                    ))
-                } else if !(finite(&a.settings.light.position)
-                    && finite(&a.settings.light.intensity))
-                {
-                    Err("light has a non-finite value".into())
-                } else {
-                    check_tile(&a.tile, a.width, a.height).and_then(|_| check_camera(&a.camera))
-                }
+            Message::AssignTile(a) => check_frame(a.width, a.height, &a.settings)
+                .and_then(|_| check_tile(&a.tile, a.width, a.height))
+                .and_then(|_| check_camera(&a.camera)),
+            Message::FrameStart(f) => {
+                check_frame(f.width, f.height, &f.settings).and_then(|_| check_camera(&f.camera))
             }
+            Message::TileReport(r) => check_tile(&r.tile, u32::MAX, u32::MAX),
+            Message::TileOwners(o) => check_owners(o),
+            Message::ManifestData(m) if m.data.0.len() > crate::MAX_VOXEL_BYTES => Err(format!(
+                "manifest of {} bytes is over {}",
+                m.data.0.len(),
+                crate::MAX_VOXEL_BYTES
+            )),
             Message::TileDone(t) => {
                 let n = t.tile.area();
                 check_tile(&t.tile, u32::MAX, u32::MAX).and_then(|_| {

@@ -230,6 +230,7 @@ fn maximal_messages_fit_their_limits() {
         voxels_touched: u32::MAX,
         misses: u32::MAX,
         bytes_fetched: u64::MAX,
+        stall_us: u64::MAX,
     };
     let client = ClientFrameStats {
         node: long('c'),
@@ -237,6 +238,7 @@ fn maximal_messages_fit_their_limits() {
         rays: u64::MAX,
         misses: u64::MAX,
         bytes_fetched: u64::MAX,
+        stall_us: u64::MAX,
     };
     let msgs = vec![
         Message::RequestWork(RequestWork { slots: u16::MAX }),
@@ -252,12 +254,13 @@ fn maximal_messages_fit_their_limits() {
             width: MAX_IMAGE_SIDE,
             height: MAX_IMAGE_SIDE,
             settings: RenderSettings {
+                shade: true,
                 shadows: true,
                 reflection_depth: MAX_REFLECTION_DEPTH,
-                light: Light {
-                    position: [f32::MAX; 3],
-                    intensity: [f32::MAX; 3],
-                },
+                light_dir: [f32::MAX; 3],
+                reflective: Reflective::Color([255; 3]),
+                reflectance: 1.0,
+                voxel_colors: true,
                 want_depth: true,
                 want_prim_ids: true,
             },
@@ -292,6 +295,8 @@ fn maximal_messages_fit_their_limits() {
                 time_us: u64::MAX,
                 misses: u64::MAX,
                 bytes_fetched: u64::MAX,
+                voxels_touched: u64::MAX,
+                stall_us: u64::MAX,
                 clients: BoundedVec::new(vec![client; MAX_STATS_CLIENTS]).unwrap(),
             },
         }),
@@ -302,6 +307,44 @@ fn maximal_messages_fit_their_limits() {
         Message::Ping(Ping { seq: u64::MAX }),
         Message::Pong(Ping { seq: u64::MAX }),
         Message::Shutdown(Shutdown { reason: text }),
+        Message::FetchManifest(FetchManifest {}),
+        Message::ManifestData(ManifestData {
+            data: Blob(vec![1; MAX_VOXEL_BYTES]),
+        }),
+        Message::TileReport(TileReport {
+            frame: u64::MAX,
+            tile,
+            stats,
+        }),
+        Message::FrameStart(FrameStart {
+            frame: u64::MAX,
+            camera,
+            width: MAX_IMAGE_SIDE,
+            height: MAX_IMAGE_SIDE,
+            settings: RenderSettings {
+                shade: true,
+                shadows: true,
+                reflection_depth: MAX_REFLECTION_DEPTH,
+                light_dir: [f32::MAX; 3],
+                reflective: Reflective::Ids {
+                    start: u32::MAX - 1,
+                    end: u32::MAX,
+                },
+                reflectance: 1.0,
+                voxel_colors: true,
+                want_depth: true,
+                want_prim_ids: true,
+            },
+        }),
+        Message::FrameAssigned(FrameAssigned { frame: u64::MAX }),
+        Message::TileOwners(TileOwners {
+            frame: u64::MAX,
+            width: MAX_IMAGE_SIDE,
+            height: MAX_IMAGE_SIDE / 16,
+            tile_size: 16,
+            owners: PackedU32(vec![MAX_STATS_CLIENTS as u32 - 1; MAX_FRAME_TILES]),
+            clients: BoundedVec::new(vec![long('c'); MAX_STATS_CLIENTS]).unwrap(),
+        }),
     ];
     for msg in msgs {
         let kind = msg.kind();

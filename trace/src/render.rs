@@ -381,38 +381,6 @@ pub enum ReflectRule {
     Color([u8; 3]),
 }
 
-impl std::str::FromStr for ReflectRule {
-    type Err = String;
-
-    /// `all`, `ids:A-B` (B exclusive) or `color:R,G,B`.
-    fn from_str(s: &str) -> Result<Self, String> {
-        let bad = || format!("'{s}' is not a reflection rule (all, ids:A-B or color:R,G,B)");
-        if s == "all" {
-            return Ok(ReflectRule::All);
-        }
-        if let Some(r) = s.strip_prefix("ids:") {
-            let (a, b) = r.split_once('-').ok_or_else(bad)?;
-            let (a, b) = (a.parse().map_err(|_| bad())?, b.parse().map_err(|_| bad())?);
-            return if a < b {
-                Ok(ReflectRule::Ids(a..b))
-            } else {
-                Err(bad())
-            };
-        }
-        if let Some(c) = s.strip_prefix("color:") {
-            let v: Vec<u8> = c
-                .split(',')
-                .map(|x| x.trim().parse())
-                .collect::<Result<_, _>>()
-                .map_err(|_| bad())?;
-            if let [r, g, b] = v[..] {
-                return Ok(ReflectRule::Color([r, g, b]));
-            }
-        }
-        Err(bad())
-    }
-}
-
 impl ReflectRule {
     fn matches(&self, id: u32, color: Vec3) -> bool {
         match self {

@@ -1,0 +1,1 @@
+//! The Client actor: voxel cache, loader and render threads.

@@ -1,0 +1,1 @@
+//! The Display actor: frames, metrics, camera path.

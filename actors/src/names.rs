@@ -1,0 +1,186 @@
+//! Node and actor names, and voxel shards.
+//!
+//! Node names are fixed by role (`scheduler`, `display`, `store-I`,
+//! `client-I`, as in `dray-config`); each node runs its actors under fixed
+//! actor names, so every address follows from the config.
+
+use dray_protocol::{Address, Name, VoxelId};
+
+/// Actor name of the scheduler (on node `scheduler`).
+pub const SCHEDULER: &str = "scheduler";
+/// Actor name of the frame assigner (on node `scheduler`).
+pub const ASSIGNER: &str = "assigner";
+/// Actor name of the prefetcher (on node `scheduler`).
+pub const PREFETCHER: &str = "prefetcher";
+/// Actor name of a voxel store (on node `store-I`).
+pub const STORE: &str = "store";
+/// Actor name of a client (on node `client-I`).
+pub const CLIENT: &str = "client";
+/// Actor name of the display (on node `display`).
+pub const DISPLAY: &str = "display";
+
+fn addr(node: &str, actor: &str) -> Address {
+    Address::parse(node, actor).expect("fixed node and actor names are valid")
+}
+
+/// Node name of store `i`.
+pub fn store_node(i: usize) -> Name {
+    Name::new(&format!("store-{i}")).expect("store names are valid")
+}
+
+/// Node name of client `i`.
+pub fn client_node(i: usize) -> Name {
+    Name::new(&format!("client-{i}")).expect("client names are valid")
+}
+
+/// The scheduler's address.
+pub fn scheduler() -> Address {
+    addr("scheduler", SCHEDULER)
+}
+
+/// The frame assigner's address.
+pub fn assigner() -> Address {
+    addr("scheduler", ASSIGNER)
+}
+
+/// The prefetcher's address.
+pub fn prefetcher() -> Address {
+    addr("scheduler", PREFETCHER)
+}
+
+/// The display's address.
+pub fn display() -> Address {
+    addr("display", DISPLAY)
+}
+
+/// Store `i`'s address.
+pub fn store(i: usize) -> Address {
+    Address::new(store_node(i), Name::new(STORE).expect("valid"))
+}
+
+/// Client `i`'s address.
+pub fn client(i: usize) -> Address {
+    Address::new(client_node(i), Name::new(CLIENT).expect("valid"))
+}
+
+/// The voxels a store serves: those whose id is `index` modulo `count`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct Shard {
+    /// Which residue.
+    pub index: u32,
+    /// Modulo what (1: every voxel).
+    pub count: u32,
+}
+
+impl Shard {
+    /// Every voxel.
+    pub const ALL: Shard = Shard { index: 0, count: 1 };
+
+    /// Whether this shard holds voxel `id`.
+    pub fn owns(&self, id: VoxelId) -> bool {
+        id % self.count == self.index
+    }
+}
+
+impl std::str::FromStr for Shard {
+    type Err = String;
+
+    /// `I/N` with `I < N`.
+    fn from_str(s: &str) -> Result<Shard, String> {
+        let bad = || format!("{s:?} is not a shard of the form I/N with I < N (e.g. 0/2)");
+        let (i, n) = s.split_once('/').ok_or_else(bad)?;
+        let (index, count): (u32, u32) = (
+            i.trim().parse().map_err(|_| bad())?,
+            n.trim().parse().map_err(|_| bad())?,
+        );
+        if count == 0 || index >= count {
+            return Err(bad());
+        }
+        Ok(Shard { index, count })
+    }
+}
+
+impl std::fmt::Display for Shard {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}/{}", self.index, self.count)
+    }
+}
+
+/// Where each voxel is fetched: the stores and their shards. Every voxel
+/// must be owned by at least one store; among several owners a voxel goes
+/// to one picked by its id, so replicas share the load.
+#[derive(Clone, Debug)]
+pub struct StoreRoutes {
+    stores: Vec<(Shard, Address)>,
+}
+
+impl StoreRoutes {
+    /// Routes over `stores`; an error names a residue no store owns.
+    pub fn new(stores: Vec<(Shard, Address)>) -> Result<StoreRoutes, String> {
+        if stores.is_empty() {
+            return Err("no store".into());
+        }
+        let lcm = stores
+            .iter()
+            .fold(1u64, |l, (s, _)| lcm(l, u64::from(s.count)));
+        if lcm > 1 << 16 {
+            return Err("shard counts are too many or too mixed".into());
+        }
+        for r in 0..lcm as u32 {
+            if !stores.iter().any(|(s, _)| s.owns(r)) {
+                return Err(format!(
+                    "no store serves voxels {r} modulo {lcm} (check the shards)"
+                ));
+            }
+        }
+        Ok(StoreRoutes { stores })
+    }
+
+    /// The store to ask for voxel `id`.
+    pub fn store_for(&self, id: VoxelId) -> &Address {
+        let owners: Vec<&Address> = self
+            .stores
+            .iter()
+            .filter(|(s, _)| s.owns(id))
+            .map(|(_, a)| a)
+            .collect();
+        owners[(id as usize / self.stores.len().max(1)) % owners.len()]
+    }
+
+    /// Every store, in order.
+    pub fn all(&self) -> impl Iterator<Item = &Address> {
+        self.stores.iter().map(|(_, a)| a)
+    }
+}
+
+fn lcm(a: u64, b: u64) -> u64 {
+    fn gcd(a: u64, b: u64) -> u64 {
+        if b == 0 {
+            a
+        } else {
+            gcd(b, a % b)
+        }
+    }
+    a / gcd(a, b) * b
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn shards_parse_and_route() {
+        assert_eq!("1/3".parse::<Shard>(), Ok(Shard { index: 1, count: 3 }));
+        assert!("3/3".parse::<Shard>().is_err());
+        assert!("x".parse::<Shard>().is_err());
+        let routes = StoreRoutes::new(vec![
+            ("0/2".parse().unwrap(), store(0)),
+            ("1/2".parse().unwrap(), store(1)),
+        ])
+        .unwrap();
+        assert_eq!(routes.store_for(4), &store(0));
+        assert_eq!(routes.store_for(7), &store(1));
+        let gap = StoreRoutes::new(vec![("0/2".parse().unwrap(), store(0))]);
+        assert!(gap.unwrap_err().contains("1 modulo 2"));
+    }
+}

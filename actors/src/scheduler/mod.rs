@@ -1,0 +1,1 @@
+//! The Scheduler, FrameAssigner and Prefetcher actors (node `scheduler`).

@@ -1,0 +1,2 @@
+//! The VoxelStore actor: serves compressed voxel blobs by id from a database
+//! on disk (one shard of it).
