@@ -13,6 +13,9 @@ use dray_trace::camera::Camera;
 use dray_trace::render::{render_repeated, Isa, RenderSettings};
 use dray_trace::scene::{ResidentSource, TopLevel};
 use glam::Vec3;
+use dray_actors::cluster::{NodeOutcome, RunOptions};
+use dray_actors::display::path::CameraPath;
+use dray_protocol::Role;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
@@ -80,16 +83,84 @@ enum Command {
         #[command(subcommand)]
         action: CertsAction,
     },
-    /// Generate a default plant, preprocess it (kept for the next run), show
-    /// what it holds, and render a walk from outside to deep inside.
+    /// Generate a default plant, preprocess it (kept for the next run), and
+    /// render a walkthrough from outside to deep inside on a local cluster
+    /// (config/examples/demo.toml: 2 clients, 2 stores, over QUIC).
     Demo {
-        /// Where the demo keeps its model and database.
-        #[arg(long, default_value = "data/demo")]
-        dir: PathBuf,
+        /// The demo's cluster config.
+        #[arg(long, default_value = DEMO_CONFIG)]
+        config: PathBuf,
         /// Triangles of the generated plant.
         #[arg(long, default_value_t = 1_000_000)]
         triangles: u64,
+        /// Frames of the walkthrough.
+        #[arg(long, default_value_t = 90)]
+        frames: u32,
     },
+    /// Start every node of a config on this machine as separate processes
+    /// over QUIC, run the camera path, print a summary, stop them all.
+    Cluster {
+        config: PathBuf,
+        /// Kernel instruction set for the clients (default: the best).
+        #[arg(long, value_parser = parse_isa)]
+        isa: Option<Isa>,
+        /// Print the summary as one JSON line.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Run one node of a config (for a cluster across machines, from the
+    /// same config file on each).
+    Node {
+        #[arg(long)]
+        config: PathBuf,
+        /// scheduler, store, client or display.
+        #[arg(long, value_parser = parse_role)]
+        role: Role,
+        /// Which store or client.
+        #[arg(long, default_value_t = 0)]
+        index: usize,
+        /// Kernel instruction set (clients).
+        #[arg(long, value_parser = parse_isa)]
+        isa: Option<Isa>,
+    },
+    /// Run every node of a config in this process over the in-process
+    /// transport (with the config's link shaping).
+    Sim {
+        config: PathBuf,
+        /// Number of clients instead of the config's.
+        #[arg(long)]
+        clients: Option<u32>,
+        /// Kernel instruction set for the clients (default: the best).
+        #[arg(long, value_parser = parse_isa)]
+        isa: Option<Isa>,
+        /// Print the summary as one JSON line.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Write a camera path (TOML keyframes) that flies from outside a
+    /// database's model to deep inside it.
+    Walkthrough {
+        db: PathBuf,
+        #[arg(long, default_value_t = 90)]
+        frames: u32,
+        #[arg(long)]
+        out: PathBuf,
+    },
+}
+
+/// The demo's config, relative to the workspace (where `cargo run` runs).
+const DEMO_CONFIG: &str = "config/examples/demo.toml";
+
+fn parse_role(s: &str) -> Result<Role, String> {
+    match s {
+        "scheduler" => Ok(Role::Scheduler),
+        "store" => Ok(Role::Store),
+        "client" => Ok(Role::Client),
+        "display" => Ok(Role::Display),
+        _ => Err(format!(
+            "'{s}' is not a role (scheduler, store, client, display)"
+        )),
+    }
 }
 
 #[derive(clap::Args)]
@@ -317,7 +388,59 @@ fn run(cli: Cli) -> Result<ExitCode> {
             );
         }
         Command::Render(args) => render(&args)?,
-        Command::Demo { dir, triangles } => demo(&dir, triangles)?,
+        Command::Demo {
+            config,
+            triangles,
+            frames,
+        } => demo(&config, triangles, frames)?,
+        Command::Cluster { config, isa, json } => {
+            let cfg = dray_config::Config::load(&config)?;
+            let mut extra = Vec::new();
+            if let Some(isa) = isa {
+                extra.extend(["--isa".to_string(), isa.name().to_string()]);
+            }
+            let exe = std::env::current_exe().context("finding the dray binary")?;
+            let report = runtime()?.block_on(dray_actors::launch::cluster(
+                &exe, &config, &cfg, &extra,
+            ))?;
+            print_report(&report.summary, &report.events, json);
+        }
+        Command::Node {
+            config,
+            role,
+            index,
+            isa,
+        } => {
+            let cfg = dray_config::Config::load(&config)?;
+            let opts = RunOptions {
+                isa,
+                ..RunOptions::default()
+            };
+            let outcome = runtime()?.block_on(dray_actors::cluster::node(&cfg, role, index, &opts))?;
+            if let NodeOutcome::Display(summary) = outcome {
+                println!("summary {}", summary.to_json());
+            }
+        }
+        Command::Sim {
+            config,
+            clients,
+            isa,
+            json,
+        } => {
+            let cfg = dray_config::Config::load(&config)?;
+            let opts = RunOptions {
+                clients,
+                isa,
+                ..RunOptions::default()
+            };
+            let run = runtime()?.block_on(dray_actors::cluster::sim(&cfg, &opts))?;
+            print_report(&run.display.to_json(), &[], json);
+        }
+        Command::Walkthrough { db, frames, out } => {
+            let db = Database::open(&db)?;
+            write_walkthrough(&db, frames, &out)?;
+            println!("{}: {frames} frames", out.display());
+        }
     }
     Ok(ExitCode::SUCCESS)
 }
@@ -369,16 +492,56 @@ fn build_database(opts: &PreprocessOptions) -> Result<()> {
     Ok(())
 }
 
-fn demo(dir: &Path, triangles: u64) -> Result<()> {
-    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    let model = dir.join(format!("plant-{triangles}.ply"));
-    let db_path = dir.join(format!("plant-{triangles}.db"));
+fn runtime() -> Result<tokio::runtime::Runtime> {
+    tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("starting the async runtime")
+}
+
+/// Prints a run's summary: the display's text (or JSON) and what happened.
+fn print_report(summary: &serde_json::Value, events: &[String], json: bool) {
+    if json {
+        println!("{summary}");
+        return;
+    }
+    if let Some(text) = summary.get("text").and_then(|t| t.as_str()) {
+        print!("{text}");
+    } else {
+        println!("{summary:#}");
+    }
+    for e in events {
+        println!("event: {e}");
+    }
+}
+
+fn write_walkthrough(db: &Database, frames: u32, out: &Path) -> Result<()> {
+    let path = CameraPath::walkthrough(&db.manifest.model_bounds, frames);
+    let tmp = out.with_extension("toml.tmp");
+    std::fs::write(&tmp, path.to_toml()).with_context(|| format!("writing {}", tmp.display()))?;
+    std::fs::rename(&tmp, out).with_context(|| format!("writing {}", out.display()))?;
+    Ok(())
+}
+
+/// The README's first command: model, database, walkthrough and
+/// certificates are made on the first run and kept; then a local cluster
+/// renders the walk.
+fn demo(config: &Path, triangles: u64, frames: u32) -> Result<()> {
+    let cfg = dray_config::Config::load(config)
+        .with_context(|| format!("the demo's config {}", config.display()))?;
+    let db_path = cfg.scene.database.clone();
+    let dir = db_path
+        .parent()
+        .map(Path::to_path_buf)
+        .unwrap_or_else(|| PathBuf::from("."));
+    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
     if Database::open(&db_path).is_ok() {
         println!(
             "{}: reusing the database from an earlier run",
             db_path.display()
         );
     } else {
+        let model = dir.join(format!("plant-{triangles}.ply"));
         if !model.exists() {
             generate(triangles, 1, &model)?;
         }
@@ -390,42 +553,20 @@ fn demo(dir: &Path, triangles: u64) -> Result<()> {
         bail!("{}: {}", db_path.display(), report.problems.join("; "));
     }
     print!("{}", DbInfo::from_manifest(&db.manifest).to_text());
-
-    // A walk from outside the plant to deep inside, with shadows.
-    let source = ResidentSource::load(&db)?;
-    let top = TopLevel::from_manifest(&db.manifest);
-    let bounds = db.manifest.model_bounds;
-    let settings = RenderSettings {
-        shade: true,
-        shadows: true,
-        ..RenderSettings::primary(bounds.diagonal())
-    };
-    let threads = settings.threads;
-    for (k, (eye, look)) in dray_scene::generate::suggested_views(&bounds)
-        .into_iter()
-        .enumerate()
-    {
-        let camera = Camera {
-            eye,
-            look,
-            up: Vec3::Y,
-            fov_degrees: 60.0,
-            width: 640,
-            height: 480,
-        };
-        let frame = dray_trace::render::render(&top, &source, &camera, &settings)
-            .map_err(|id| anyhow::anyhow!("voxel {id} was not loaded"))?;
-        let png = dir.join(format!("view-{k}.png"));
-        dray_trace::image::write_png(&png, frame.width, frame.height, &frame.rgba)?;
-        let s = &frame.stats;
+    if let Some(walk) = &cfg.render.camera_path {
+        if !walk.exists() {
+            write_walkthrough(&db, frames, walk)?;
+            println!("{}: a walkthrough of {frames} frames", walk.display());
+        }
+    }
+    let exe = std::env::current_exe().context("finding the dray binary")?;
+    let report = runtime()?.block_on(dray_actors::launch::cluster(&exe, config, &cfg, &[]))?;
+    print_report(&report.summary, &report.events, false);
+    if let Some(out) = &cfg.display.output {
         println!(
-            "{}: {:.1} ms, {:.2} Mrays/s ({} primary and {} shadow rays, {:.0} % hit) on {threads} threads",
-            png.display(),
-            s.seconds * 1e3,
-            (s.primary_rays + s.shadow_rays) as f64 / s.seconds / 1e6,
-            s.primary_rays,
-            s.shadow_rays,
-            100.0 * s.hits as f64 / s.primary_rays.max(1) as f64
+            "frames in {}, metrics in {}",
+            out.join("frames").display(),
+            out.join("metrics.csv").display()
         );
     }
     Ok(())

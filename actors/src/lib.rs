@@ -31,7 +31,9 @@
 //! [`Message::TileOwners`]: dray_protocol::Message::TileOwners
 
 pub mod client;
+pub mod cluster;
 pub mod display;
+pub mod launch;
 pub mod names;
 pub mod scheduler;
 pub mod settings;

@@ -1,0 +1,634 @@
+//! Starting the actors of one config: every node in this process over the
+//! in-process transport ([`sim`]), or one node over QUIC ([`node`]). The
+//! process supervisor of `dray cluster` is in [`crate::launch`].
+//!
+//! Which node runs what, and who dials whom (the bus convention: the
+//! dialer redials when a connection is lost):
+//!
+//! | node | actors | dials |
+//! |---|---|---|
+//! | `scheduler` | scheduler, assigner, prefetcher | the stores (manifest for the prefetcher) |
+//! | `store-I` | store | — |
+//! | `display` | display | the scheduler, the stores |
+//! | `client-I` | client | the scheduler, the display, the stores |
+//!
+//! Shaped links (`[links]`) go through a UDP relay that the dialing node
+//! starts on its own machine; in-process they are shaped by the network.
+
+use crate::client::{run_client, ClientOptions, ClientSummary};
+use crate::display::{path::CameraPath, run_display, DisplayOptions, DisplaySummary};
+use crate::names::{self, StoreRoutes};
+use crate::scheduler::{
+    run_assigner, run_prefetcher, run_scheduler, AssignerOptions, PrefetcherOptions,
+    SchedulerOptions, SchedulerSummary,
+};
+use crate::settings::{wire_camera, wire_settings};
+use crate::store::{run_store, StoreOptions, StoreSummary};
+use crate::{ActorError, Shard};
+use dray_config::{Config, LinkConfig};
+use dray_protocol::{Address, Camera, Message, Name, Role, Shutdown};
+use dray_runtime::certs::NodeIdentity;
+use dray_runtime::quic::QuicTransport;
+use dray_runtime::relay::UdpRelay;
+use dray_runtime::{Bus, InProcNet, LinkShape, Mailbox};
+use dray_trace::render::Isa;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::time::Duration;
+use tokio::task::JoinHandle;
+use tracing::{info, warn};
+
+/// Undelivered messages an actor's mailbox holds before senders wait.
+const MAILBOX: usize = 4096;
+
+/// Why a run could not start or finish.
+#[derive(Debug, thiserror::Error)]
+pub enum ClusterError {
+    /// The config is unusable.
+    #[error(transparent)]
+    Config(#[from] dray_config::ConfigError),
+    /// The camera path is unusable.
+    #[error("render.camera_path: {0}")]
+    CameraPath(String),
+    /// An actor failed.
+    #[error(transparent)]
+    Actor(#[from] ActorError),
+    /// A node could not start (certificates, sockets, names).
+    #[error("node {node}: {message}")]
+    Node {
+        /// The node.
+        node: String,
+        /// What went wrong.
+        message: String,
+    },
+}
+
+fn node_err(node: &Name, e: impl std::fmt::Display) -> ClusterError {
+    ClusterError::Node {
+        node: node.to_string(),
+        message: e.to_string(),
+    }
+}
+
+/// Choices a command makes on top of the config.
+#[derive(Clone, Debug, Default)]
+pub struct RunOptions {
+    /// Number of clients instead of `clients.count`.
+    pub clients: Option<u32>,
+    /// Keep every frame's image in the summary (tests compare them).
+    pub keep_frames: bool,
+    /// The kernel's instruction set (default: the best this CPU runs).
+    pub isa: Option<Isa>,
+}
+
+/// What a whole run did.
+#[derive(Debug)]
+pub struct RunSummary {
+    /// Frames, metrics and (when kept) images.
+    pub display: DisplaySummary,
+    /// The scheduler's counts.
+    pub scheduler: SchedulerSummary,
+    /// Per client, in order.
+    pub clients: Vec<ClientSummary>,
+    /// Per store, in order.
+    pub stores: Vec<StoreSummary>,
+}
+
+fn name(s: &str) -> Name {
+    Name::new(s).expect("fixed node names are valid")
+}
+
+fn shape(l: &LinkConfig) -> LinkShape {
+    LinkShape {
+        latency: l.latency(),
+        jitter: l.jitter(),
+        bandwidth_bps: l.bandwidth_bps(),
+        loss: l.loss,
+    }
+}
+
+/// Where each voxel is fetched, from the config's shards.
+pub fn store_routes(cfg: &Config) -> Result<StoreRoutes, ClusterError> {
+    let stores = cfg
+        .shards()?
+        .into_iter()
+        .enumerate()
+        .map(|(i, (index, count))| (Shard { index, count }, names::store(i)))
+        .collect();
+    StoreRoutes::new(stores).map_err(|problem| {
+        ClusterError::Config(dray_config::ConfigError::Invalid {
+            key: "stores".into(),
+            problem,
+        })
+    })
+}
+
+/// The camera of every frame: the camera path's, or the fixed camera
+/// `render.frames` times.
+pub fn frame_cameras(cfg: &Config) -> Result<Vec<Camera>, ClusterError> {
+    match &cfg.render.camera_path {
+        Some(p) => Ok(CameraPath::load(p)
+            .map_err(|e| ClusterError::CameraPath(e.to_string()))?
+            .cameras()),
+        None => Ok(vec![wire_camera(&cfg.render.camera); cfg.render.frames as usize]),
+    }
+}
+
+fn client_options(cfg: &Config, opts: &RunOptions) -> Result<ClientOptions, ClusterError> {
+    let c = &cfg.clients;
+    Ok(ClientOptions {
+        threads: c.threads as usize,
+        cache_bytes: cfg.cache_bytes(),
+        miss_mode: match c.miss_mode {
+            dray_config::MissMode::Suspend => dray_trace::tile::MissMode::Suspend,
+            dray_config::MissMode::Block => dray_trace::tile::MissMode::Block,
+        },
+        max_inflight_fetches: c.max_inflight_fetches as usize,
+        tiles_ahead: c.tiles_ahead as usize,
+        isa: opts.isa.unwrap_or_else(Isa::detect),
+        stores: store_routes(cfg)?,
+        scheduler: names::scheduler(),
+        display: names::display(),
+    })
+}
+
+fn display_options(cfg: &Config, opts: &RunOptions) -> Result<DisplayOptions, ClusterError> {
+    let web = match &cfg.display.web {
+        Some(w) => Some(w.parse::<SocketAddr>().map_err(|_| {
+            dray_config::ConfigError::Invalid {
+                key: "display.web".into(),
+                problem: format!("{w:?} is not IP:PORT"),
+            }
+        })?),
+        None => None,
+    };
+    Ok(DisplayOptions {
+        assigner: names::assigner(),
+        width: cfg.render.width,
+        height: cfg.render.height,
+        cameras: frame_cameras(cfg)?,
+        frames_ahead: cfg.display.frames_ahead as usize,
+        output: cfg.display.output.clone(),
+        keep_frames: opts.keep_frames,
+        web,
+    })
+}
+
+/// The scheduler node's three actors.
+struct SchedulerTasks {
+    scheduler: JoinHandle<Result<SchedulerSummary, ActorError>>,
+    assigner: JoinHandle<Result<(), ActorError>>,
+    prefetcher: Option<JoinHandle<Result<crate::scheduler::PrefetcherSummary, ActorError>>>,
+}
+
+fn scheduler_mailboxes(bus: &Bus) -> Result<[Mailbox; 3], ClusterError> {
+    let mb = |a: &str| {
+        bus.mailbox(name(a), MAILBOX)
+            .map_err(|e| node_err(bus.node(), e))
+    };
+    Ok([
+        mb(names::SCHEDULER)?,
+        mb(names::ASSIGNER)?,
+        mb(names::PREFETCHER)?,
+    ])
+}
+
+fn spawn_scheduler(cfg: &Config, boxes: [Mailbox; 3]) -> Result<SchedulerTasks, ClusterError> {
+    let [sched, assign, prefetch] = boxes;
+    let prefetcher = cfg.prefetch.enabled.then(names::prefetcher);
+    let scheduler = tokio::spawn(run_scheduler(
+        sched,
+        SchedulerOptions {
+            tile_size: cfg.render.tile_size,
+            affinity: cfg.scheduler.affinity,
+            costliest_first: cfg.scheduler.costliest_first,
+            tile_deadline: Duration::from_millis(cfg.scheduler.tile_deadline_ms),
+            display: names::display(),
+            assigner: names::assigner(),
+            prefetcher: prefetcher.clone(),
+            seed: 0x5eed,
+        },
+    ));
+    let assigner = tokio::spawn(run_assigner(
+        assign,
+        AssignerOptions {
+            scheduler: names::scheduler(),
+            prefetcher: prefetcher.clone(),
+            width: cfg.render.width,
+            height: cfg.render.height,
+            settings: wire_settings(&cfg.render),
+        },
+    ));
+    let prefetcher = if cfg.prefetch.enabled {
+        Some(tokio::spawn(run_prefetcher(
+            prefetch,
+            PrefetcherOptions {
+                stores: store_routes(cfg)?,
+                step: cfg.prefetch.step,
+                voxels_per_ray: cfg.prefetch.voxels_per_ray,
+                width: cfg.render.width,
+                height: cfg.render.height,
+            },
+        )))
+    } else {
+        None
+    };
+    Ok(SchedulerTasks {
+        scheduler,
+        assigner,
+        prefetcher,
+    })
+}
+
+fn store_options(cfg: &Config, i: usize) -> Result<StoreOptions, ClusterError> {
+    let (index, count) = cfg.shards()?[i];
+    Ok(StoreOptions {
+        database: cfg.scene.database.clone(),
+        shard: Shard { index, count },
+        max_concurrent: cfg.stores[i].max_concurrent as usize,
+    })
+}
+
+/// Every actor of every node, to tell them all to stop.
+fn every_actor(cfg: &Config, clients: u32) -> Vec<Address> {
+    let mut v = vec![names::scheduler(), names::assigner(), names::prefetcher()];
+    v.extend((0..cfg.stores.len()).map(names::store));
+    v.extend((0..clients as usize).map(names::client));
+    v
+}
+
+async fn shutdown_all(mb: &Mailbox, to: &[Address], reason: &str) {
+    for a in to {
+        let msg = Message::Shutdown(Shutdown {
+            reason: reason.into(),
+        });
+        if let Err(e) = mb.send(a, msg).await {
+            // A node that is already gone needs no telling.
+            tracing::debug!(to = %a, error = %e, "shutdown not delivered");
+        }
+    }
+}
+
+async fn joined<T>(what: &str, h: JoinHandle<Result<T, ActorError>>) -> Result<T, ClusterError> {
+    match h.await {
+        Ok(r) => Ok(r?),
+        Err(e) => Err(ClusterError::Node {
+            node: what.into(),
+            message: format!("actor task failed: {e}"),
+        }),
+    }
+}
+
+/// Runs every node of `cfg` in this process over the in-process transport,
+/// with the config's link shaping, until the display has every frame.
+pub async fn sim(cfg: &Config, opts: &RunOptions) -> Result<RunSummary, ClusterError> {
+    let clients = opts.clients.unwrap_or(cfg.clients.count);
+    let net = InProcNet::new();
+    let add = |n: Name, role: Role| net.add_node(n.clone(), role).map_err(|e| node_err(&n, e));
+    let sched_bus = add(name("scheduler"), Role::Scheduler)?;
+    let display_bus = add(name("display"), Role::Display)?;
+    let store_buses = (0..cfg.stores.len())
+        .map(|i| add(names::store_node(i), Role::Store))
+        .collect::<Result<Vec<_>, _>>()?;
+    let client_buses = (0..clients as usize)
+        .map(|i| add(names::client_node(i), Role::Client))
+        .collect::<Result<Vec<_>, _>>()?;
+    let links = &cfg.links;
+    let set = |a: &Bus, b: &Bus, l: &LinkConfig| {
+        if l.is_shaped() {
+            net.set_shape(a.node(), b.node(), shape(l))
+                .map_err(|e| node_err(a.node(), e))
+        } else {
+            Ok(())
+        }
+    };
+    for c in &client_buses {
+        for s in &store_buses {
+            set(c, s, &links.client_store)?;
+        }
+        set(c, &sched_bus, &links.client_scheduler)?;
+        set(c, &display_bus, &links.client_scheduler)?;
+    }
+    set(&display_bus, &sched_bus, &links.display)?;
+
+    // Every mailbox exists before any actor sends.
+    let sched_boxes = scheduler_mailboxes(&sched_bus)?;
+    let display_box = display_bus
+        .mailbox(name(names::DISPLAY), MAILBOX)
+        .map_err(|e| node_err(display_bus.node(), e))?;
+    let control = display_bus
+        .mailbox(name("sim"), 16)
+        .map_err(|e| node_err(display_bus.node(), e))?;
+    let store_boxes = store_buses
+        .iter()
+        .map(|b| {
+            b.mailbox(name(names::STORE), MAILBOX)
+                .map_err(|e| node_err(b.node(), e))
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    let client_boxes = client_buses
+        .iter()
+        .map(|b| {
+            b.mailbox(name(names::CLIENT), MAILBOX)
+                .map_err(|e| node_err(b.node(), e))
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+
+    let stores: Vec<_> = store_boxes
+        .into_iter()
+        .enumerate()
+        .map(|(i, mb)| Ok(tokio::spawn(run_store(mb, store_options(cfg, i)?))))
+        .collect::<Result<_, ClusterError>>()?;
+    let sched = spawn_scheduler(cfg, sched_boxes)?;
+    let copts = client_options(cfg, opts)?;
+    let client_tasks: Vec<_> = client_boxes
+        .into_iter()
+        .map(|mb| tokio::spawn(run_client(mb, copts.clone())))
+        .collect();
+    info!(clients, stores = stores.len(), "simulated cluster started");
+    let display = run_display(display_box, display_options(cfg, opts)?).await;
+    shutdown_all(&control, &every_actor(cfg, clients), "the run is over").await;
+    let display = display?;
+    let scheduler = joined("scheduler", sched.scheduler).await?;
+    joined("assigner", sched.assigner).await?;
+    if let Some(p) = sched.prefetcher {
+        joined("prefetcher", p).await?;
+    }
+    let mut client_summaries = Vec::new();
+    for (i, t) in client_tasks.into_iter().enumerate() {
+        client_summaries.push(joined(&format!("client-{i}"), t).await?);
+    }
+    let mut store_summaries = Vec::new();
+    for (i, t) in stores.into_iter().enumerate() {
+        store_summaries.push(joined(&format!("store-{i}"), t).await?);
+    }
+    drop((sched_bus, client_buses, store_buses, display_bus, net));
+    Ok(RunSummary {
+        display,
+        scheduler,
+        clients: client_summaries,
+        stores: store_summaries,
+    })
+}
+
+/// The node a role and index name.
+pub fn node_name(role: Role, index: usize) -> Result<Name, String> {
+    match role {
+        Role::Scheduler => Ok(name("scheduler")),
+        Role::Display => Ok(name("display")),
+        Role::Store => Ok(names::store_node(index)),
+        Role::Client => Ok(names::client_node(index)),
+        Role::Tool => Err("a tool is not a node of the cluster".into()),
+    }
+}
+
+/// What one node did, for its process to print.
+#[derive(Debug)]
+pub enum NodeOutcome {
+    /// The display's run.
+    Display(DisplaySummary),
+    /// Another node stopped when told to.
+    Stopped,
+}
+
+/// A QUIC transport and the relays its shaped dials go through.
+struct Links {
+    transport: std::sync::Arc<QuicTransport>,
+    _relays: Vec<UdpRelay>,
+    dialed: Vec<Name>,
+}
+
+impl Links {
+    async fn dial(&mut self, peer: Name, addr: SocketAddr, l: &LinkConfig) -> Result<(), String> {
+        let target = if l.is_shaped() {
+            let local = SocketAddr::new(addr.ip(), 0);
+            let relay = UdpRelay::start(local, addr, shape(l), shape(l))
+                .await
+                .map_err(|e| format!("relay to {peer}: {e}"))?;
+            let a = relay.local_addr();
+            self._relays.push(relay);
+            a
+        } else {
+            addr
+        };
+        self.transport.connect(peer.clone(), target);
+        self.dialed.push(peer);
+        Ok(())
+    }
+}
+
+/// Runs one node of `cfg` over QUIC until it is told to stop (or, for the
+/// display, until every frame is in; it then stops the others). Prints
+/// `ready NODE` on stdout once its connections are up, which
+/// `dray cluster` waits for.
+pub async fn node(
+    cfg: &Config,
+    role: Role,
+    index: usize,
+    opts: &RunOptions,
+) -> Result<NodeOutcome, ClusterError> {
+    let clients = opts.clients.unwrap_or(cfg.clients.count);
+    let me = node_name(role, index).map_err(|m| ClusterError::Node {
+        node: role.to_string(),
+        message: m,
+    })?;
+    match role {
+        Role::Store if index >= cfg.stores.len() => {
+            return Err(node_err(
+                &me,
+                format!("the config has {} stores", cfg.stores.len()),
+            ))
+        }
+        Role::Client if index >= clients as usize => {
+            return Err(node_err(&me, format!("the config has {clients} clients")))
+        }
+        _ => {}
+    }
+    let bus = Bus::new(me.clone(), role);
+    let identity = NodeIdentity::load(&cfg.certs.dir, &me).map_err(|e| {
+        node_err(
+            &me,
+            format!(
+                "certs.dir {}: {e} (make them with `dray certs init DIR --config CONFIG`)",
+                cfg.certs.dir.display()
+            ),
+        )
+    })?;
+    let listen = match role {
+        Role::Scheduler => cfg.scheduler_addr()?,
+        Role::Display => cfg.display_addr()?,
+        Role::Store => cfg.store_addrs()?[index],
+        _ => SocketAddr::new(
+            cfg.clients.bind.parse().map_err(|_| {
+                ClusterError::Config(dray_config::ConfigError::Invalid {
+                    key: "clients.bind".into(),
+                    problem: "not an IP address".into(),
+                })
+            })?,
+            0,
+        ),
+    };
+    // Mailboxes before the transport: nothing may arrive for an actor that
+    // does not exist yet.
+    let boxes = match role {
+        Role::Scheduler => RoleBoxes::Scheduler(scheduler_mailboxes(&bus)?),
+        _ => {
+            let actor = match role {
+                Role::Store => names::STORE,
+                Role::Client => names::CLIENT,
+                _ => names::DISPLAY,
+            };
+            RoleBoxes::One(
+                bus.mailbox(name(actor), MAILBOX)
+                    .map_err(|e| node_err(&me, e))?,
+            )
+        }
+    };
+    let transport = QuicTransport::start(&bus, &identity, listen)
+        .await
+        .map_err(|e| node_err(&me, format!("listening on {listen}: {e}")))?;
+    let mut links = Links {
+        transport: transport.clone(),
+        _relays: Vec::new(),
+        dialed: Vec::new(),
+    };
+    let stores = cfg.store_addrs()?;
+    let unshaped = LinkConfig::default();
+    let dial_stores = |l: &LinkConfig| {
+        stores
+            .iter()
+            .enumerate()
+            .map(|(i, a)| (names::store_node(i), *a, *l))
+            .collect::<Vec<_>>()
+    };
+    let dials: Vec<(Name, SocketAddr, LinkConfig)> = match role {
+        Role::Scheduler => dial_stores(&unshaped),
+        Role::Display => {
+            let mut v = vec![(name("scheduler"), cfg.scheduler_addr()?, cfg.links.display)];
+            v.extend(dial_stores(&unshaped));
+            v
+        }
+        Role::Client => {
+            let mut v = vec![
+                (
+                    name("scheduler"),
+                    cfg.scheduler_addr()?,
+                    cfg.links.client_scheduler,
+                ),
+                (
+                    name("display"),
+                    cfg.display_addr()?,
+                    cfg.links.client_scheduler,
+                ),
+            ];
+            v.extend(dial_stores(&cfg.links.client_store));
+            v
+        }
+        _ => Vec::new(),
+    };
+    for (peer, addr, l) in dials {
+        links.dial(peer, addr, &l).await.map_err(|m| node_err(&me, m))?;
+    }
+    for peer in links.dialed.clone() {
+        wait_logged(&bus, &peer).await;
+    }
+    if role == Role::Display {
+        // The walk starts once every client has joined.
+        wait_for_clients(&bus, clients as usize).await;
+    }
+    println!("ready {me}");
+    use std::io::Write;
+    let _ = std::io::stdout().flush();
+
+    let outcome = tokio::select! {
+        r = run_role(cfg, opts, &bus, boxes, index, clients) => r,
+        _ = tokio::signal::ctrl_c() => {
+            warn!(node = %me, "interrupted");
+            Ok(NodeOutcome::Stopped)
+        }
+    };
+    transport.shutdown().await;
+    outcome
+}
+
+/// The mailboxes of one node's actors.
+enum RoleBoxes {
+    Scheduler([Mailbox; 3]),
+    One(Mailbox),
+}
+
+async fn wait_logged(bus: &Bus, peer: &Name) {
+    let mut waited = 0u32;
+    loop {
+        match tokio::time::timeout(Duration::from_secs(5), bus.wait_for_peer(peer)).await {
+            Ok(()) => return,
+            Err(_) => {
+                waited += 5;
+                warn!(node = %bus.node(), %peer, seconds = waited, "still waiting for a connection");
+            }
+        }
+    }
+}
+
+async fn wait_for_clients(bus: &Bus, n: usize) {
+    let mut last = usize::MAX;
+    loop {
+        let have = bus
+            .peers()
+            .iter()
+            .filter(|(_, r)| *r == Role::Client)
+            .count();
+        if have >= n {
+            return;
+        }
+        if have != last {
+            info!(joined = have, expected = n, "waiting for clients");
+            last = have;
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
+async fn run_role(
+    cfg: &Config,
+    opts: &RunOptions,
+    bus: &Bus,
+    boxes: RoleBoxes,
+    index: usize,
+    clients: u32,
+) -> Result<NodeOutcome, ClusterError> {
+    match (bus.role(), boxes) {
+        (Role::Scheduler, RoleBoxes::Scheduler(b)) => {
+            let t = spawn_scheduler(cfg, b)?;
+            joined("scheduler", t.scheduler).await?;
+            joined("assigner", t.assigner).await?;
+            if let Some(p) = t.prefetcher {
+                joined("prefetcher", p).await?;
+            }
+            Ok(NodeOutcome::Stopped)
+        }
+        (Role::Store, RoleBoxes::One(mb)) => {
+            run_store(mb, store_options(cfg, index)?).await?;
+            Ok(NodeOutcome::Stopped)
+        }
+        (Role::Client, RoleBoxes::One(mb)) => {
+            run_client(mb, client_options(cfg, opts)?).await?;
+            Ok(NodeOutcome::Stopped)
+        }
+        (Role::Display, RoleBoxes::One(mb)) => {
+            let control = bus
+                .mailbox(name("control"), 16)
+                .map_err(|e| node_err(bus.node(), e))?;
+            let summary = run_display(mb, display_options(cfg, opts)?).await;
+            shutdown_all(&control, &every_actor(cfg, clients), "the run is over").await;
+            // Give the shutdown messages time to leave before the
+            // transport closes.
+            tokio::time::sleep(Duration::from_millis(200)).await;
+            Ok(NodeOutcome::Display(summary?))
+        }
+        (role, _) => Err(ClusterError::Node {
+            node: bus.node().to_string(),
+            message: format!("no actors for role {role}"),
+        }),
+    }
+}

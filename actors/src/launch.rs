@@ -1,0 +1,338 @@
+//! `dray cluster`: every node of a config as a process on this machine,
+//! supervised.
+//!
+//! Nodes start in dependency order (stores, scheduler, display, clients);
+//! each prints `ready NODE` once its connections are up, and the display
+//! only does so when every client has joined, so "all ready" means the
+//! whole cluster is up. Then the display runs the camera path, prints
+//! `summary JSON` and tells every node to stop.
+//!
+//! Faults while running: a client that dies is reported and the others
+//! take its tiles (the scheduler reassigns them); a store that dies is
+//! restarted (clients re-send their fetches when it is back); the
+//! scheduler or the display dying ends the run with an error naming the
+//! node, its exit status and its last log lines.
+
+use dray_config::Config;
+use std::collections::VecDeque;
+use std::path::{Path, PathBuf};
+use std::process::{ExitStatus, Stdio};
+use std::time::Duration;
+use tokio::io::{AsyncBufReadExt, BufReader};
+use tokio::process::{Child, Command};
+use tokio::sync::mpsc;
+
+/// How long the whole cluster may take to come up.
+const STARTUP_TIMEOUT: Duration = Duration::from_secs(120);
+/// How long nodes may take to stop once told to.
+const STOP_TIMEOUT: Duration = Duration::from_secs(10);
+/// Times a store is restarted before the run gives up.
+const STORE_RESTARTS: u32 = 3;
+/// Log lines kept per node, to say why it died.
+const LOG_TAIL: usize = 12;
+
+/// Why `dray cluster` failed.
+#[derive(Debug, thiserror::Error)]
+pub enum LaunchError {
+    /// A node process could not be started.
+    #[error("cannot start {node}: {source}")]
+    Spawn {
+        /// The node.
+        node: String,
+        /// What the OS said.
+        source: std::io::Error,
+    },
+    /// A node died where the run cannot go on without it.
+    #[error("{node} died ({status}){log}")]
+    Died {
+        /// The node.
+        node: String,
+        /// Its exit status.
+        status: String,
+        /// Its last log lines.
+        log: String,
+    },
+    /// Nodes did not come up in time.
+    #[error("the cluster did not come up within {}s; waiting for {waiting}", STARTUP_TIMEOUT.as_secs())]
+    Startup {
+        /// The nodes not ready.
+        waiting: String,
+    },
+    /// Ctrl-C.
+    #[error("interrupted; every node was stopped")]
+    Interrupted,
+    /// Certificates could not be made.
+    #[error("certificates: {0}")]
+    Certs(String),
+}
+
+/// What a supervised run produced.
+#[derive(Debug)]
+pub struct ClusterReport {
+    /// The display's summary (its `summary` line).
+    pub summary: serde_json::Value,
+    /// What happened along the way (deaths, restarts), in order.
+    pub events: Vec<String>,
+}
+
+#[derive(Debug)]
+enum Event {
+    Line { node: usize, line: String },
+    Log { node: usize, line: String },
+}
+
+struct Proc {
+    name: String,
+    args: Vec<String>,
+    child: Option<Child>,
+    tail: VecDeque<String>,
+    ready: bool,
+    restarts: u32,
+    done: bool,
+}
+
+fn status_text(s: &ExitStatus) -> String {
+    #[cfg(unix)]
+    {
+        use std::os::unix::process::ExitStatusExt;
+        if let Some(sig) = s.signal() {
+            return format!("killed by signal {sig}");
+        }
+    }
+    match s.code() {
+        Some(c) => format!("exit code {c}"),
+        None => "unknown status".into(),
+    }
+}
+
+fn tail_text(p: &Proc) -> String {
+    if p.tail.is_empty() {
+        String::new()
+    } else {
+        let lines: Vec<&str> = p.tail.iter().map(String::as_str).collect();
+        format!("; its last log lines:\n  {}", lines.join("\n  "))
+    }
+}
+
+fn spawn(exe: &Path, p: &mut Proc, idx: usize, tx: &mpsc::Sender<Event>) -> Result<(), LaunchError> {
+    let mut child = Command::new(exe)
+        .args(&p.args)
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .kill_on_drop(true)
+        .spawn()
+        .map_err(|source| LaunchError::Spawn {
+            node: p.name.clone(),
+            source,
+        })?;
+    if let Some(out) = child.stdout.take() {
+        let tx = tx.clone();
+        tokio::spawn(async move {
+            let mut lines = BufReader::new(out).lines();
+            while let Ok(Some(line)) = lines.next_line().await {
+                let _ = tx.send(Event::Line { node: idx, line }).await;
+            }
+        });
+    }
+    if let Some(err) = child.stderr.take() {
+        let tx = tx.clone();
+        tokio::spawn(async move {
+            let mut lines = BufReader::new(err).lines();
+            while let Ok(Some(line)) = lines.next_line().await {
+                let _ = tx.send(Event::Log { node: idx, line }).await;
+            }
+        });
+    }
+    println!(
+        "started {} (pid {})",
+        p.name,
+        child.id().map_or("?".into(), |i| i.to_string())
+    );
+    p.child = Some(child);
+    p.ready = false;
+    p.done = false;
+    Ok(())
+}
+
+/// Makes the cluster's certificates when `certs.dir` has none yet (a
+/// cluster on one machine needs nothing else).
+pub fn ensure_certs(cfg: &Config, clients: u32) -> Result<bool, LaunchError> {
+    if cfg.certs.dir.join("ca.pem").exists() {
+        return Ok(false);
+    }
+    let mut names = vec!["scheduler".to_string(), "display".to_string()];
+    names.extend((0..cfg.stores.len()).map(|i| format!("store-{i}")));
+    names.extend((0..clients).map(|i| format!("client-{i}")));
+    let refs: Vec<&str> = names.iter().map(String::as_str).collect();
+    dray_runtime::certs::init_cluster(&cfg.certs.dir, &refs)
+        .map_err(|e| LaunchError::Certs(e.to_string()))?;
+    Ok(true)
+}
+
+/// Runs every node of the config at `config_path` as a process of `exe`
+/// (the `dray` binary: `exe node --config … --role … --index …`), until the
+/// display is done; `extra` is appended to every node's arguments.
+pub async fn cluster(
+    exe: &Path,
+    config_path: &Path,
+    cfg: &Config,
+    extra: &[String],
+) -> Result<ClusterReport, LaunchError> {
+    let clients = cfg.clients.count as usize;
+    if ensure_certs(cfg, clients as u32)? {
+        println!(
+            "made the cluster certificates in {}",
+            cfg.certs.dir.display()
+        );
+    }
+    let config_arg: PathBuf = config_path.to_owned();
+    let proc_for = |role: &str, index: Option<usize>| {
+        let name = match index {
+            Some(i) => format!("{role}-{i}"),
+            None => role.to_string(),
+        };
+        let mut args = vec![
+            "node".to_string(),
+            "--config".into(),
+            config_arg.display().to_string(),
+            "--role".into(),
+            role.into(),
+        ];
+        if let Some(i) = index {
+            args.extend(["--index".into(), i.to_string()]);
+        }
+        args.extend(extra.iter().cloned());
+        Proc {
+            name,
+            args,
+            child: None,
+            tail: VecDeque::new(),
+            ready: false,
+            restarts: 0,
+            done: false,
+        }
+    };
+    let mut procs: Vec<Proc> = Vec::new();
+    for i in 0..cfg.stores.len() {
+        procs.push(proc_for("store", Some(i)));
+    }
+    procs.push(proc_for("scheduler", None));
+    let display = procs.len();
+    procs.push(proc_for("display", None));
+    for i in 0..clients {
+        procs.push(proc_for("client", Some(i)));
+    }
+    let (tx, mut rx) = mpsc::channel::<Event>(1024);
+    for (i, p) in procs.iter_mut().enumerate() {
+        spawn(exe, p, i, &tx)?;
+    }
+    let mut events = Vec::new();
+    let mut summary = None;
+    let started = tokio::time::Instant::now();
+    let mut all_ready = false;
+    let mut tick = tokio::time::interval(Duration::from_millis(50));
+    let outcome: Result<(), LaunchError> = loop {
+        tokio::select! {
+            ev = rx.recv() => match ev {
+                Some(Event::Line { node, line }) => {
+                    if line.starts_with("ready ") {
+                        procs[node].ready = true;
+                        if !all_ready && procs.iter().all(|p| p.ready) {
+                            all_ready = true;
+                            println!("all {} nodes joined", procs.len());
+                        }
+                    } else if let Some(json) = line.strip_prefix("summary ") {
+                        summary = serde_json::from_str(json).ok();
+                    } else {
+                        println!("[{}] {line}", procs[node].name);
+                    }
+                }
+                Some(Event::Log { node, line }) => {
+                    eprintln!("[{}] {line}", procs[node].name);
+                    let t = &mut procs[node].tail;
+                    if t.len() == LOG_TAIL {
+                        t.pop_front();
+                    }
+                    t.push_back(line);
+                }
+                None => {}
+            },
+            _ = tick.tick() => {
+                if !all_ready && started.elapsed() > STARTUP_TIMEOUT {
+                    let waiting: Vec<&str> = procs.iter().filter(|p| !p.ready).map(|p| p.name.as_str()).collect();
+                    break Err(LaunchError::Startup { waiting: waiting.join(", ") });
+                }
+                let mut fatal = None;
+                for i in 0..procs.len() {
+                    let exited = match procs[i].child.as_mut() {
+                        Some(c) if !procs[i].done => c.try_wait().ok().flatten(),
+                        _ => None,
+                    };
+                    let Some(status) = exited else { continue };
+                    procs[i].done = true;
+                    let name = procs[i].name.clone();
+                    if i == display && status.success() {
+                        continue;
+                    }
+                    let what = status_text(&status);
+                    if name.starts_with("client-") {
+                        let alive = procs.iter().filter(|p| p.name.starts_with("client-") && !p.done).count();
+                        let e = format!("{name} died ({what}); {alive} clients go on and take its tiles");
+                        eprintln!("cluster: {e}");
+                        events.push(e);
+                        if alive == 0 {
+                            fatal = Some(LaunchError::Died { node: "every client".into(), status: what, log: tail_text(&procs[i]) });
+                        }
+                    } else if name.starts_with("store-") && procs[i].restarts < STORE_RESTARTS {
+                        procs[i].restarts += 1;
+                        let e = format!("{name} died ({what}); restarting it (restart {})", procs[i].restarts);
+                        eprintln!("cluster: {e}");
+                        events.push(e);
+                        if let Err(err) = spawn(exe, &mut procs[i], i, &tx) {
+                            fatal = Some(err);
+                        }
+                    } else {
+                        fatal = Some(LaunchError::Died { node: name, status: what, log: tail_text(&procs[i]) });
+                    }
+                }
+                if let Some(f) = fatal {
+                    break Err(f);
+                }
+                if procs[display].done {
+                    break Ok(());
+                }
+            }
+            _ = tokio::signal::ctrl_c() => break Err(LaunchError::Interrupted),
+        }
+    };
+    // The display told everyone to stop; wait for them, then make sure.
+    let deadline = tokio::time::Instant::now() + STOP_TIMEOUT;
+    for p in procs.iter_mut() {
+        if let Some(c) = p.child.as_mut() {
+            if outcome.is_ok() {
+                let left = deadline.saturating_duration_since(tokio::time::Instant::now());
+                if tokio::time::timeout(left, c.wait()).await.is_ok() {
+                    continue;
+                }
+                events.push(format!("{} did not stop in time and was killed", p.name));
+            }
+            let _ = c.kill().await;
+        }
+    }
+    // Drain what the nodes printed last (the summary may be among it).
+    while let Ok(ev) = rx.try_recv() {
+        if let Event::Line { line, .. } = ev {
+            if let Some(json) = line.strip_prefix("summary ") {
+                summary = serde_json::from_str(json).ok();
+            }
+        }
+    }
+    outcome?;
+    let summary = summary.ok_or_else(|| LaunchError::Died {
+        node: "display".into(),
+        status: "exited without a summary".into(),
+        log: tail_text(&procs[display]),
+    })?;
+    Ok(ClusterReport { summary, events })
+}
