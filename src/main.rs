@@ -395,6 +395,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
         } => demo(&config, triangles, frames)?,
         Command::Cluster { config, isa, json } => {
             let cfg = dray_config::Config::load(&config)?;
+            dray_actors::cluster::preflight(&cfg, None)?;
             let mut extra = Vec::new();
             if let Some(isa) = isa {
                 extra.extend(["--isa".to_string(), isa.name().to_string()]);

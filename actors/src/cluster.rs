@@ -134,6 +134,25 @@ pub fn frame_cameras(cfg: &Config) -> Result<Vec<Camera>, ClusterError> {
     }
 }
 
+/// Checks what the config points at before anything starts, so that a
+/// mistake stops startup with the key's name: the database (everywhere
+/// but on a client, which fetches everything) and the camera path (the
+/// display's). `role` None: every node of the config.
+pub fn preflight(cfg: &Config, role: Option<Role>) -> Result<(), ClusterError> {
+    if matches!(role, None | Some(Role::Store)) {
+        dray_scene::db::Database::open(&cfg.scene.database).map_err(|e| {
+            ClusterError::Config(dray_config::ConfigError::Invalid {
+                key: "scene.database".into(),
+                problem: format!("{}: {e}", cfg.scene.database.display()),
+            })
+        })?;
+    }
+    if matches!(role, None | Some(Role::Display)) {
+        frame_cameras(cfg)?;
+    }
+    Ok(())
+}
+
 fn client_options(cfg: &Config, opts: &RunOptions) -> Result<ClientOptions, ClusterError> {
     let c = &cfg.clients;
     Ok(ClientOptions {
@@ -282,6 +301,7 @@ async fn joined<T>(what: &str, h: JoinHandle<Result<T, ActorError>>) -> Result<T
 /// Runs every node of `cfg` in this process over the in-process transport,
 /// with the config's link shaping, until the display has every frame.
 pub async fn sim(cfg: &Config, opts: &RunOptions) -> Result<RunSummary, ClusterError> {
+    preflight(cfg, None)?;
     let clients = opts.clients.unwrap_or(cfg.clients.count);
     let net = InProcNet::new();
     let add = |n: Name, role: Role| net.add_node(n.clone(), role).map_err(|e| node_err(&n, e));
@@ -444,6 +464,7 @@ pub async fn node(
         }
         _ => {}
     }
+    preflight(cfg, Some(role))?;
     let bus = Bus::new(me.clone(), role);
     let identity = NodeIdentity::load(&cfg.certs.dir, &me).map_err(|e| {
         node_err(

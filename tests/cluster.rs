@@ -1,0 +1,117 @@
+//! The cluster in one process (the in-process transport): frames equal
+//! `dray render` pixel for pixel whatever the number of clients, the cache
+//! budget and the link shaping; 8 clients with tiny caches and 5 ms links
+//! finish a walkthrough; config mistakes name their key.
+
+mod common;
+
+use common::*;
+use dray_actors::cluster::{frame_cameras, sim, RunOptions};
+
+fn rt() -> tokio::runtime::Runtime {
+    tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .unwrap()
+}
+
+fn check_frames(cfg: &dray_config::Config, clients: u32) {
+    let opts = RunOptions {
+        clients: Some(clients),
+        keep_frames: true,
+        ..RunOptions::default()
+    };
+    let run = rt().block_on(sim(cfg, &opts)).unwrap();
+    let cameras = frame_cameras(cfg).unwrap();
+    assert_eq!(run.display.images.len(), cameras.len());
+    for (img, cam) in run.display.images.iter().zip(&cameras) {
+        let (rgba, depth, primid) = reference(cfg, cam);
+        let what = format!("frame {} with {clients} clients", img.frame);
+        assert_eq!(img.primid.as_ref().unwrap(), &primid, "{what}: primitive ids");
+        let d = img.depth.as_ref().unwrap();
+        assert!(
+            d.iter().zip(&depth).all(|(a, b)| a.to_bits() == b.to_bits()),
+            "{what}: depth"
+        );
+        assert!(img.rgba == rgba, "{what}: colors");
+    }
+}
+
+#[test]
+fn frames_equal_dray_render_for_any_clients_cache_and_shaping() {
+    let dir = tempfile::tempdir().unwrap();
+    let db = plant_db(dir.path(), 30_000);
+    let path = dir.path().join("walk.toml");
+    write_path(&db, &path, 3);
+    // Everything fits; unshaped.
+    let (_, big) = config(
+        dir.path(),
+        &config_text(&db, &path, dir.path(), 2, 256.0, "", ""),
+    );
+    for clients in [1, 2, 8] {
+        check_frames(&big, clients);
+    }
+    // A cache of a few voxels (each is some tens of kB), shaped links, and
+    // the block mode.
+    let links = "[links.client_store]\nlatency_ms = 2.0\nbandwidth_mbps = 200.0\n[links.client_scheduler]\nlatency_ms = 1.0\n";
+    for extra in ["miss_mode = \"suspend\"", "miss_mode = \"block\""] {
+        let (_, tiny) = config(
+            dir.path(),
+            &config_text(&db, &path, dir.path(), 2, 0.15, extra, links),
+        );
+        check_frames(&tiny, 2);
+    }
+}
+
+#[test]
+fn eight_clients_with_tiny_caches_and_5ms_links_finish_a_walkthrough() {
+    let dir = tempfile::tempdir().unwrap();
+    let db = plant_db(dir.path(), 30_000);
+    let path = dir.path().join("walk.toml");
+    write_path(&db, &path, 6);
+    let links = "[links.client_store]\nlatency_ms = 5.0\n[links.client_scheduler]\nlatency_ms = 5.0\n[links.display]\nlatency_ms = 5.0\n";
+    let (_, cfg) = config(
+        dir.path(),
+        &config_text(&db, &path, dir.path(), 8, 0.1, "", links),
+    );
+    let run = rt().block_on(sim(&cfg, &RunOptions::default())).unwrap();
+    assert_eq!(run.display.frames.len(), 6);
+    for m in &run.display.frames {
+        assert_eq!(m.tiles as usize, (96usize / 16) * (64 / 16), "frame {}", m.frame);
+    }
+    // The caches were too small for the walk: voxels were evicted and
+    // fetched again.
+    assert!(run.clients.iter().map(|c| c.evicted).sum::<u64>() > 0);
+    // Frames and metrics were written.
+    let csv = std::fs::read_to_string(dir.path().join("out/metrics.csv")).unwrap();
+    assert_eq!(csv.lines().count(), 7, "{csv}");
+    assert!(dir.path().join("out/frames/frame-00005.png").exists());
+}
+
+#[test]
+fn config_mistakes_stop_startup_naming_the_key() {
+    let dir = tempfile::tempdir().unwrap();
+    let missing = dir.path().join("nothing-here.vdb");
+    let path = dir.path().join("walk.toml");
+    std::fs::write(
+        &path,
+        "frames = 2\n[[keyframe]]\neye = [0.0, 0.0, -5.0]\nlook = [0.0, 0.0, 0.0]\n[[keyframe]]\neye = [0.0, 1.0, -5.0]\nlook = [0.0, 0.0, 0.0]\n",
+    )
+    .unwrap();
+    let (_, cfg) = config(
+        dir.path(),
+        &config_text(&missing, &path, dir.path(), 1, 16.0, "", ""),
+    );
+    let err = rt()
+        .block_on(sim(&cfg, &RunOptions::default()))
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("scene.database"), "{err}");
+    assert!(err.contains("nothing-here.vdb"), "{err}");
+    // A bad address is refused when the config is read.
+    let text = config_text(&missing, &path, dir.path(), 1, 16.0, "", "")
+        .replacen("address = \"127.0.0.1:", "address = \"127.0.0.1:x", 1);
+    let err = dray_config::Config::parse(&text).unwrap_err().to_string();
+    assert!(err.contains("scheduler.address"), "{err}");
+}
