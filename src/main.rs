@@ -222,6 +222,64 @@ struct RenderArgs {
     /// Print one JSON object as the last line.
     #[arg(long)]
     json: bool,
+    /// Render every camera of this camera path (TOML keyframes, as the
+    /// cluster's `render.camera_path`) instead of one view, shaded, and
+    /// report frames per second: the one-process baseline of the cluster.
+    #[arg(long, conflicts_with_all = ["eye", "look", "repeat"])]
+    path: Option<PathBuf>,
+}
+
+/// `dray render --path`: every camera of a path, once each, everything
+/// resident; the one-process figure the cluster's frame rate is compared
+/// with.
+fn render_path(
+    a: &RenderArgs,
+    path: &Path,
+    top: &TopLevel,
+    source: &ResidentSource,
+    settings: &RenderSettings,
+    load_seconds: f64,
+) -> Result<()> {
+    let cameras = CameraPath::load(path)
+        .with_context(|| format!("camera path {}", path.display()))?
+        .cameras();
+    let start = std::time::Instant::now();
+    let mut rays = 0u64;
+    let mut frame_seconds = Vec::with_capacity(cameras.len());
+    for c in &cameras {
+        let camera = dray_actors::settings::kernel_camera(c, a.width, a.height);
+        let frame = dray_trace::render::render(top, source, &camera, settings)
+            .map_err(|id| anyhow::anyhow!("voxel {id} was not loaded"))?;
+        let s = &frame.stats;
+        rays += s.primary_rays + s.shadow_rays + s.reflection_rays;
+        frame_seconds.push(s.seconds);
+    }
+    let seconds = start.elapsed().as_secs_f64();
+    let fps = cameras.len() as f64 / seconds;
+    println!(
+        "{} frames of {}x{} on {} thread(s) in {seconds:.2} s: {fps:.2} frames/s, {:.2} Mrays/s (loaded in {load_seconds:.2} s)",
+        cameras.len(),
+        a.width,
+        a.height,
+        settings.threads,
+        rays as f64 / seconds / 1e6
+    );
+    if a.json {
+        let json = serde_json::json!({
+            "frames": cameras.len(),
+            "seconds": seconds,
+            "fps": fps,
+            "rays": rays,
+            "mrays_per_s": rays as f64 / seconds / 1e6,
+            "frame_seconds": frame_seconds,
+            "threads": settings.threads,
+            "width": a.width,
+            "height": a.height,
+            "load_seconds": load_seconds,
+        });
+        println!("{json}");
+    }
+    Ok(())
 }
 
 fn parse_isa(s: &str) -> Result<Isa, String> {
@@ -594,7 +652,11 @@ fn render(a: &RenderArgs) -> Result<()> {
     }
     let defaults = RenderSettings::primary(bounds.diagonal());
     let settings = RenderSettings {
-        shade: a.out.is_some() || a.shadows || a.reflections > 0 || a.voxel_colors,
+        shade: a.out.is_some()
+            || a.shadows
+            || a.reflections > 0
+            || a.voxel_colors
+            || a.path.is_some(),
         shadows: a.shadows,
         light: a.light,
         threads: if a.threads == 0 {
@@ -610,6 +672,9 @@ fn render(a: &RenderArgs) -> Result<()> {
         ..defaults
     };
     let threads = settings.threads;
+    if let Some(path) = &a.path {
+        return render_path(a, path, &top, &source, &settings, load_seconds);
+    }
     let (frame, mut seconds) = render_repeated(&top, &source, &camera, &settings, a.repeat)
         .map_err(|id| anyhow::anyhow!("voxel {id} was not loaded"))?;
     if let Some(p) = &a.out {

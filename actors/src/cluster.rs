@@ -123,13 +123,16 @@ pub fn store_routes(cfg: &Config) -> Result<StoreRoutes, ClusterError> {
     })
 }
 
-/// The camera of every frame: the camera path's, or the fixed camera
-/// `render.frames` times.
+/// The camera of every frame: the camera path's, `render.loops` times, or
+/// the fixed camera `render.frames` times.
 pub fn frame_cameras(cfg: &Config) -> Result<Vec<Camera>, ClusterError> {
     match &cfg.render.camera_path {
-        Some(p) => Ok(CameraPath::load(p)
-            .map_err(|e| ClusterError::CameraPath(e.to_string()))?
-            .cameras()),
+        Some(p) => {
+            let once = CameraPath::load(p)
+                .map_err(|e| ClusterError::CameraPath(e.to_string()))?
+                .cameras();
+            Ok(once.repeat(cfg.render.loops as usize))
+        }
         None => Ok(vec![wire_camera(&cfg.render.camera); cfg.render.frames as usize]),
     }
 }

@@ -158,6 +158,13 @@ pub struct RenderConfig {
     /// Frames of the fixed camera to render when there is no camera path.
     #[serde(default = "default_frames")]
     pub frames: u32,
+    /// Times the camera path is flown (later loops run on warm caches).
+    #[serde(default = "default_loops")]
+    pub loops: u32,
+}
+
+fn default_loops() -> u32 {
+    1
 }
 
 fn default_light() -> [f32; 3] {
@@ -538,8 +545,17 @@ impl Config {
                 format!("{} is not in [0, 1]", r.reflectance),
             ));
         }
-        if r.frames == 0 {
-            return Err(invalid("render.frames", "must be at least 1"));
+        if r.frames == 0 || r.frames > 1_000_000 {
+            return Err(invalid(
+                "render.frames",
+                format!("{} is not in 1..=1000000", r.frames),
+            ));
+        }
+        if r.loops == 0 || r.loops > 1000 {
+            return Err(invalid(
+                "render.loops",
+                format!("{} is not in 1..=1000", r.loops),
+            ));
         }
         if self.display.frames_ahead == 0 || self.display.frames_ahead > 16 {
             return Err(invalid(
