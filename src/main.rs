@@ -493,7 +493,25 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 ..RunOptions::default()
             };
             let run = runtime()?.block_on(dray_actors::cluster::sim(&cfg, &opts))?;
-            print_report(&run.display.to_json(), &[], json);
+            let mut summary = run.display.to_json();
+            summary["clients"] = run
+                .clients
+                .iter()
+                .map(|c| {
+                    serde_json::json!({
+                        "tiles": c.tiles,
+                        "rays": c.rays,
+                        "misses": c.misses,
+                        "fetched": c.fetched,
+                        "bytes_fetched": c.bytes_fetched,
+                        "refetched": c.refetched,
+                        "evicted": c.evicted,
+                        "peak_cache_bytes": c.peak_cache_bytes,
+                        "prefetched": c.prefetched,
+                    })
+                })
+                .collect();
+            print_report(&summary, &[], json);
         }
         Command::Walkthrough { db, frames, out } => {
             let db = Database::open(&db)?;
