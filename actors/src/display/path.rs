@@ -270,6 +270,12 @@ impl CameraPath {
             while j < last && self.keyframe_frame(j + 1) <= f {
                 j += 1;
             }
+            // The ends are the end keyframes even when several keyframes
+            // share a frame (fewer frames than keyframes).
+            if f == 0 {
+                out.push(k[0].camera());
+                continue;
+            }
             if j == last || f == self.keyframe_frame(j) {
                 out.push(k[j].camera());
                 continue;

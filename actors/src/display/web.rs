@@ -29,6 +29,10 @@ pub const MAX_HEAD: usize = 8 << 10;
 pub const READ_TIMEOUT: Duration = Duration::from_secs(5);
 /// Time a client has to take the answer.
 pub const WRITE_TIMEOUT: Duration = Duration::from_secs(20);
+/// Bytes read and dropped after refusing a request, before closing.
+const LINGER_BYTES: usize = 64 << 10;
+/// Time spent on that at most.
+const LINGER_TIME: Duration = Duration::from_secs(1);
 /// Connections served at once.
 pub const MAX_CONNECTIONS: usize = 64;
 
@@ -211,9 +215,26 @@ async fn connection(mut stream: TcpStream, latest: &Mutex<Latest>) -> io::Result
         stream.shutdown().await
     };
     match tokio::time::timeout(WRITE_TIMEOUT, write).await {
-        Ok(r) => r,
-        Err(_) => Err(io::Error::new(io::ErrorKind::TimedOut, "write timed out")),
+        Ok(r) => r?,
+        Err(_) => return Err(io::Error::new(io::ErrorKind::TimedOut, "write timed out")),
     }
+    if resp.status >= 400 {
+        // A refused request may have left bytes unread; closing on them
+        // would reset the connection and lose the answer. Drain a bounded
+        // amount for a bounded time first (a "lingering close").
+        let mut sink = [0u8; 4096];
+        let mut left = LINGER_BYTES;
+        let drain = async {
+            while left > 0 {
+                match stream.read(&mut sink).await {
+                    Ok(0) | Err(_) => break,
+                    Ok(n) => left = left.saturating_sub(n),
+                }
+            }
+        };
+        let _ = tokio::time::timeout(LINGER_TIME, drain).await;
+    }
+    Ok(())
 }
 
 /// `(method, path without the query)` of a GET or HEAD request, or the
