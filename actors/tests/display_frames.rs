@@ -22,7 +22,7 @@ fn pixel(frame: u64, x: u32, y: u32) -> [u8; 4] {
 }
 
 fn depth(frame: u64, x: u32, y: u32) -> f32 {
-    if (x + y) % 7 == 0 {
+    if (x + y).is_multiple_of(7) {
         f32::INFINITY
     } else {
         frame as f32 + x as f32 * 0.5 + y as f32
@@ -30,10 +30,10 @@ fn depth(frame: u64, x: u32, y: u32) -> f32 {
 }
 
 fn primid(frame: u64, x: u32, y: u32) -> u32 {
-    if (x + y) % 7 == 0 {
+    if (x + y).is_multiple_of(7) {
         u32::MAX
     } else {
-        (frame as u32) << 16 | y * W + x
+        ((frame as u32) << 16) | (y * W + x)
     }
 }
 

@@ -189,3 +189,119 @@ async fn display_web_viewer_refuses_bad_requests_and_keeps_serving() {
     let (status, _, _) = get(addr, "/").await;
     assert_eq!(status, 200, "still serving");
 }
+
+#[tokio::test]
+async fn display_web_viewer_shows_the_displays_latest_frame() {
+    use dray_actors::display::{run_display, DisplayOptions};
+    use dray_actors::names;
+    use dray_protocol::{
+        Blob, Camera, FrameDone, Message, Name, Role, Shutdown, TileDone, TileRect, TileStats,
+    };
+    use dray_runtime::{Delivery, InProcNet};
+
+    // A free port (the display binds it itself).
+    let addr = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap();
+    let net = InProcNet::new();
+    let sched = net
+        .add_node(Name::new("scheduler").unwrap(), Role::Scheduler)
+        .unwrap();
+    let disp = net
+        .add_node(Name::new("display").unwrap(), Role::Display)
+        .unwrap();
+    let mut assigner = sched
+        .mailbox(Name::new(names::ASSIGNER).unwrap(), 16)
+        .unwrap();
+    let mb = disp
+        .mailbox(Name::new(names::DISPLAY).unwrap(), 64)
+        .unwrap();
+    let cam = Camera {
+        eye: [0.0, 0.0, -5.0],
+        look: [0.0; 3],
+        up: [0.0, 1.0, 0.0],
+        fov_y_deg: 45.0,
+    };
+    let display = tokio::spawn(run_display(
+        mb,
+        DisplayOptions {
+            assigner: names::assigner(),
+            width: 8,
+            height: 4,
+            cameras: vec![cam; 3],
+            frames_ahead: 1,
+            output: None,
+            keep_frames: false,
+            web: Some(addr),
+        },
+    ));
+    let camera = |d: Option<Delivery>| match d {
+        Some(Delivery::Message {
+            msg: Message::CameraUpdate(c),
+            ..
+        }) => Some(c.seq),
+        _ => None,
+    };
+    let mut seq = None;
+    while seq.is_none() {
+        seq = camera(assigner.recv().await);
+    }
+    assert_eq!(seq, Some(0));
+    let rgba: Vec<u8> = (0..32u8).flat_map(|i| [i, 2 * i, 3 * i, 255]).collect();
+    assigner
+        .send(
+            &names::display(),
+            Message::TileDone(TileDone {
+                frame: 0,
+                tile: TileRect {
+                    x: 0,
+                    y: 0,
+                    w: 8,
+                    h: 4,
+                },
+                pixels: Blob(rgba.clone()),
+                depth: None,
+                prim_ids: None,
+                stats: TileStats::default(),
+            }),
+        )
+        .await
+        .unwrap();
+    assigner
+        .send(
+            &names::display(),
+            Message::FrameDone(FrameDone {
+                frame: 0,
+                stats: Default::default(),
+            }),
+        )
+        .await
+        .unwrap();
+    // Frame 0 shown: the display asks for frame 1.
+    let mut seq = None;
+    while seq.is_none() {
+        seq = camera(assigner.recv().await);
+    }
+    assert_eq!(seq, Some(1));
+    let (status, _, body) = get(addr, "/frame.png").await;
+    assert_eq!(status, 200);
+    let (w, h, px) = decode_png(&body);
+    assert_eq!((w, h), (8, 4));
+    assert_eq!(px.as_flattened(), rgba.as_slice());
+    let (_, _, body) = get(addr, "/metrics.json").await;
+    let j: serde_json::Value = serde_json::from_slice(&body).unwrap();
+    assert_eq!(j["frame"], 0);
+    assigner
+        .send(
+            &names::display(),
+            Message::Shutdown(Shutdown {
+                reason: "done".into(),
+            }),
+        )
+        .await
+        .unwrap();
+    let s = display.await.unwrap().unwrap();
+    assert_eq!(s.frames.len(), 1);
+    assert!(s.images.is_empty(), "keep_frames off");
+}
