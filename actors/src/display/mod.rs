@@ -1,1 +1,395 @@
 //! The Display actor: frames, metrics, camera path.
+//!
+//! [`run_display`] sends one [`CameraUpdate`] per frame to the frame
+//! assigner, keeping at most `frames_ahead` frames outstanding, assembles
+//! the [`TileDone`] pixels the clients send into images, and shows each
+//! frame once it has both all its pixels and the scheduler's [`FrameDone`]:
+//! frames are shown in order, a frame that completes early waits for the
+//! ones before it. Each shown frame gets a PNG (`frames/frame-NNNNN.png`,
+//! plus `.pfm` depth and `.primid` ids when the tiles carry them), a row of
+//! `metrics.csv` and, with a viewer, a refresh of the web page ([`web`]).
+//!
+//! Bad input never stops the display: tiles for frames that are not
+//! outstanding, outside the image or of inconsistent sizes are ignored
+//! with a warning and counted. Memory holds only the outstanding frames
+//! (and the shown images when `keep_frames`).
+//!
+//! [`CameraUpdate`]: dray_protocol::CameraUpdate
+//! [`TileDone`]: dray_protocol::TileDone
+//! [`FrameDone`]: dray_protocol::FrameDone
+
+mod frames;
+mod metrics;
+pub mod path;
+pub mod web;
+
+pub use frames::{FrameImage, TileRejected};
+pub use metrics::{DisplaySummary, FrameMetrics, CSV_HEADER};
+pub use path::{CameraPath, Keyframe, PathError};
+pub use web::WebViewer;
+
+use crate::ActorError;
+use dray_protocol::{Address, CameraUpdate, Message, Ping};
+use dray_runtime::{Delivery, Mailbox, SendError};
+use frames::{Frames, ReadyFrame};
+use metrics::CsvLog;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+use tokio::time::Instant;
+use tracing::{debug, info, warn};
+
+/// How long a frame whose [`FrameDone`](dray_protocol::FrameDone) came may
+/// wait for missing pixels (a tile lost with its client after the scheduler
+/// counted it) before it is shown anyway, the gaps black.
+pub const MISSING_PIXELS_GRACE: Duration = Duration::from_secs(10);
+
+/// When a camera could not be sent (the assigner unreachable), how long
+/// until the next try.
+pub const SEND_RETRY: Duration = Duration::from_millis(200);
+
+/// What the display does.
+#[derive(Clone, Debug)]
+pub struct DisplayOptions {
+    /// The frame assigner, which gets the camera updates.
+    pub assigner: Address,
+    /// Image width.
+    pub width: u32,
+    /// Image height.
+    pub height: u32,
+    /// One camera per frame, in order.
+    pub cameras: Vec<dray_protocol::Camera>,
+    /// Cameras sent before the oldest frame is complete (2: double
+    /// buffering; 0 counts as 1).
+    pub frames_ahead: usize,
+    /// Where `frames/frame-NNNNN.png` and `metrics.csv` go (created if
+    /// missing).
+    pub output: Option<PathBuf>,
+    /// Keep the images in the summary.
+    pub keep_frames: bool,
+    /// Serve the live web viewer there.
+    pub web: Option<std::net::SocketAddr>,
+}
+
+const ACTOR: &str = "display";
+
+fn io_err(path: &Path, source: std::io::Error) -> ActorError {
+    ActorError::Io {
+        actor: ACTOR.into(),
+        path: path.display().to_string(),
+        source,
+    }
+}
+
+/// Files of a run.
+struct Output {
+    frames_dir: PathBuf,
+    csv: CsvLog,
+}
+
+impl Output {
+    fn create(dir: &Path) -> Result<Output, ActorError> {
+        let frames_dir = dir.join("frames");
+        std::fs::create_dir_all(&frames_dir).map_err(|e| io_err(&frames_dir, e))?;
+        let csv_path = dir.join("metrics.csv");
+        let csv = CsvLog::create(&csv_path).map_err(|e| io_err(&csv_path, e))?;
+        Ok(Output { frames_dir, csv })
+    }
+}
+
+/// Writes a frame's files (PNG, and depth and ids when present).
+fn write_frame_files(
+    dir: &Path,
+    width: u32,
+    height: u32,
+    image: &FrameImage,
+) -> Result<(), ActorError> {
+    let stem = dir.join(format!("frame-{:05}", image.frame));
+    let img_err = |e: dray_trace::image::ImageError| ActorError::Io {
+        actor: ACTOR.into(),
+        path: stem.display().to_string(),
+        source: std::io::Error::other(e.to_string()),
+    };
+    dray_trace::image::write_png(&stem.with_extension("png"), width, height, &image.rgba)
+        .map_err(img_err)?;
+    if let Some(d) = &image.depth {
+        dray_trace::image::write_pfm(&stem.with_extension("pfm"), width, height, d)
+            .map_err(img_err)?;
+    }
+    if let Some(ids) = &image.primid {
+        dray_trace::image::write_u32(&stem.with_extension("primid"), ids).map_err(img_err)?;
+    }
+    Ok(())
+}
+
+struct Display {
+    opts: DisplayOptions,
+    frames: Frames,
+    /// Cameras sent so far.
+    sent: u64,
+    output: Option<Output>,
+    viewer: Option<WebViewer>,
+    summary: DisplaySummary,
+    /// When the first camera went out.
+    started: Option<Instant>,
+    /// When the last frame was shown.
+    last_shown: Option<Instant>,
+    /// When to try sending cameras again after a failed send.
+    retry_at: Option<Instant>,
+}
+
+impl Display {
+    fn ahead(&self) -> usize {
+        self.opts.frames_ahead.max(1)
+    }
+
+    fn total(&self) -> u64 {
+        self.opts.cameras.len() as u64
+    }
+
+    /// Sends cameras until `frames_ahead` frames are outstanding. When the
+    /// assigner cannot be reached now, the camera is retried later (on its
+    /// node's PeerUp, or after [`SEND_RETRY`]).
+    async fn send_cameras(&mut self, mb: &Mailbox) -> Result<(), ActorError> {
+        while self.sent < self.total() && self.frames.outstanding() < self.ahead() {
+            let seq = self.sent;
+            let camera = self.opts.cameras[seq as usize];
+            let r = mb
+                .send(
+                    &self.opts.assigner,
+                    Message::CameraUpdate(CameraUpdate { seq, camera }),
+                )
+                .await;
+            match r {
+                Ok(()) => {}
+                Err(SendError::Protocol(e)) => {
+                    return Err(ActorError::Send {
+                        actor: ACTOR.into(),
+                        to: self.opts.assigner.to_string(),
+                        source: SendError::Protocol(e),
+                    })
+                }
+                Err(e) => {
+                    warn!(frame = seq, "camera not sent, will retry: {e}");
+                    self.retry_at = Some(Instant::now() + SEND_RETRY);
+                    return Ok(());
+                }
+            }
+            debug!(frame = seq, "camera sent");
+            self.retry_at = None;
+            self.frames.open(seq);
+            if self.started.is_none() {
+                self.started = Some(Instant::now());
+            }
+            self.sent += 1;
+        }
+        Ok(())
+    }
+
+    /// Shows every frame that is ready, in order.
+    async fn show_ready(&mut self) -> Result<(), ActorError> {
+        while let Some(ready) = self.frames.pop_ready() {
+            self.show(ready).await?;
+        }
+        Ok(())
+    }
+
+    async fn show(&mut self, ready: ReadyFrame) -> Result<(), ActorError> {
+        let ReadyFrame {
+            image,
+            stats,
+            completed_at,
+            missing_pixels,
+        } = ready;
+        // Shown when complete, but never before the frame before it.
+        let since = self.last_shown.or(self.started).unwrap_or(completed_at);
+        let shown = completed_at.max(since);
+        let frame_ms = (shown - since).as_secs_f64() * 1e3;
+        self.last_shown = Some(shown);
+        let m = FrameMetrics::compute(image.frame, &stats, frame_ms);
+        if missing_pixels > 0 {
+            warn!(
+                frame = image.frame,
+                missing_pixels, "frame shown with pixels missing"
+            );
+            self.summary.missing_pixels += missing_pixels as u64;
+        }
+        info!(
+            frame = m.frame,
+            frame_ms = format!("{:.1}", m.frame_ms),
+            rays = m.rays,
+            misses = m.misses,
+            "frame shown"
+        );
+        let (w, h) = (self.opts.width, self.opts.height);
+        if let Some(v) = &self.viewer {
+            v.publish(w, h, &image, &m);
+        }
+        let keep = self.opts.keep_frames;
+        let image = if let Some(out) = &mut self.output {
+            let dir = out.frames_dir.clone();
+            // PNG encoding takes a while for big frames: off the runtime.
+            let image = tokio::task::spawn_blocking(move || {
+                write_frame_files(&dir, w, h, &image).map(|()| image)
+            })
+            .await
+            .map_err(|e| ActorError::Peer {
+                actor: ACTOR.into(),
+                message: format!("writing a frame failed: {e}"),
+            })??;
+            let path = out.csv.path().to_path_buf();
+            out.csv.append(&m).map_err(|e| io_err(&path, e))?;
+            image
+        } else {
+            image
+        };
+        if keep {
+            self.summary.images.push(image);
+        }
+        self.summary.push(m);
+        Ok(())
+    }
+
+    fn finish(mut self, stopped: Option<String>) -> DisplaySummary {
+        let seconds = match (self.started, self.last_shown) {
+            (Some(a), Some(b)) => (b - a).as_secs_f64(),
+            _ => 0.0,
+        };
+        self.summary.complete = self.summary.frames.len() == self.opts.cameras.len();
+        if !self.summary.complete {
+            self.summary.stopped_early = stopped.or(Some("stopped".into()));
+        }
+        self.summary.finish(seconds);
+        self.summary
+    }
+}
+
+/// Runs the display until every camera's frame is shown (or a Shutdown).
+pub async fn run_display(
+    mut mb: Mailbox,
+    opts: DisplayOptions,
+) -> Result<DisplaySummary, ActorError> {
+    if opts.width == 0 || opts.height == 0 {
+        return Err(ActorError::Peer {
+            actor: ACTOR.into(),
+            message: format!("image of {}x{} is empty", opts.width, opts.height),
+        });
+    }
+    let output = opts.output.as_deref().map(Output::create).transpose()?;
+    let viewer = match opts.web {
+        Some(addr) => Some(WebViewer::start(addr).await.map_err(|e| ActorError::Io {
+            actor: ACTOR.into(),
+            path: format!("http://{addr}/"),
+            source: e,
+        })?),
+        None => None,
+    };
+    let mut d = Display {
+        frames: Frames::new(opts.width, opts.height),
+        summary: DisplaySummary::new(opts.width, opts.height, opts.cameras.len()),
+        opts,
+        sent: 0,
+        output,
+        viewer,
+        started: None,
+        last_shown: None,
+        retry_at: None,
+    };
+    if d.opts.cameras.is_empty() {
+        return Ok(d.finish(None));
+    }
+
+    // Wait for the assigner's node, still answering a Shutdown.
+    let bus = mb.handle().bus().clone();
+    let node = d.opts.assigner.node.clone();
+    if node != *bus.node() && !bus.is_connected(&node) {
+        info!("waiting for {node}");
+        let wait = bus.wait_for_peer(&node);
+        tokio::pin!(wait);
+        loop {
+            tokio::select! {
+                _ = &mut wait => break,
+                delivery = mb.recv() => match delivery {
+                    None => return Err(ActorError::BusClosed(ACTOR.into())),
+                    Some(Delivery::Message { msg: Message::Shutdown(s), .. }) => {
+                        return Ok(d.finish(Some(format!("shutdown: {}", s.reason))));
+                    }
+                    Some(Delivery::Message { from, msg: Message::Ping(p) }) => {
+                        let _ = mb.send(&from, Message::Pong(Ping { seq: p.seq })).await;
+                    }
+                    Some(other) => debug!("before the assigner is up: {other:?}"),
+                },
+            }
+        }
+    }
+    d.send_cameras(&mb).await?;
+
+    while d.frames.next_out() < d.total() {
+        // A frame whose report came but whose pixels do not is shown anyway
+        // after a grace time; a camera that could not be sent is retried.
+        let stuck = d
+            .frames
+            .stuck_next()
+            .map(|(at, _)| at + MISSING_PIXELS_GRACE);
+        let deadline = match (stuck, d.retry_at) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        };
+        let delivery = tokio::select! {
+            delivery = mb.recv() => delivery,
+            _ = sleep_until_opt(deadline) => {
+                let now = Instant::now();
+                if stuck.is_some_and(|t| t <= now) {
+                    if let Some(ready) = d.frames.force_next(now) {
+                        d.show(ready).await?;
+                        d.show_ready().await?;
+                    }
+                }
+                d.send_cameras(&mb).await?;
+                continue;
+            }
+        };
+        let now = Instant::now();
+        match delivery {
+            None => return Err(ActorError::BusClosed(ACTOR.into())),
+            Some(Delivery::Message { from, msg }) => match msg {
+                Message::TileDone(t) => match d.frames.add_tile(&t, now) {
+                    Ok(0) => d.summary.duplicate_tiles += 1,
+                    Ok(_) => {}
+                    Err(why) => {
+                        warn!(from = %from, frame = t.frame, "tile ignored: {why}");
+                        d.summary.tiles_ignored += 1;
+                    }
+                },
+                Message::FrameDone(f) => {
+                    if !d.frames.frame_done(f.frame, f.stats, now) {
+                        warn!(from = %from, frame = f.frame, "FrameDone for a frame not outstanding ignored");
+                    }
+                }
+                Message::Shutdown(s) => {
+                    info!("shutdown: {}", s.reason);
+                    return Ok(d.finish(Some(format!("shutdown: {}", s.reason))));
+                }
+                Message::Ping(p) => {
+                    let _ = mb.send(&from, Message::Pong(Ping { seq: p.seq })).await;
+                }
+                other => debug!(from = %from, "ignored {:?}", other.kind()),
+            },
+            Some(Delivery::PeerDown { node, reason }) => {
+                if node == d.opts.assigner.node {
+                    warn!("{node} is down: {reason}");
+                }
+            }
+            Some(Delivery::PeerUp { node, .. }) => debug!("{node} is up"),
+        }
+        d.show_ready().await?;
+        d.send_cameras(&mb).await?;
+    }
+    Ok(d.finish(None))
+}
+
+async fn sleep_until_opt(deadline: Option<Instant>) {
+    match deadline {
+        Some(t) => tokio::time::sleep_until(t).await,
+        None => std::future::pending().await,
+    }
+}

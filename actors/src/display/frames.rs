@@ -1,0 +1,330 @@
+//! Frame assembly: tiles into images, frames completed in order.
+//!
+//! Only the frames whose camera was sent and that are not yet handed out
+//! are buffered (at most `frames_ahead` of them), so memory is bounded by
+//! `frames_ahead × width × height` pixels whatever the peers send.
+
+use dray_protocol::{FrameStats, TileDone};
+use std::collections::BTreeMap;
+use tokio::time::Instant;
+
+/// One frame, fully assembled.
+#[derive(Clone, Debug)]
+pub struct FrameImage {
+    /// Frame number.
+    pub frame: u64,
+    /// RGBA8 pixels, rows top to bottom.
+    pub rgba: Vec<[u8; 4]>,
+    /// Per-pixel hit distance (+inf on a miss) when the tiles carried it.
+    pub depth: Option<Vec<f32>>,
+    /// Per-pixel original triangle index (0xFFFFFFFF on a miss) when the
+    /// tiles carried it.
+    pub primid: Option<Vec<u32>>,
+}
+
+/// Why a tile was not used.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum TileRejected {
+    /// The frame is not outstanding (never asked for, or already shown).
+    UnknownFrame(u64),
+    /// The rectangle is empty or leaves the image.
+    OutsideImage(String),
+    /// Pixel, depth or id counts disagree with the rectangle.
+    BadSize(String),
+}
+
+impl std::fmt::Display for TileRejected {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            TileRejected::UnknownFrame(n) => write!(f, "frame {n} is not outstanding"),
+            TileRejected::OutsideImage(m) | TileRejected::BadSize(m) => f.write_str(m),
+        }
+    }
+}
+
+/// A frame being assembled.
+#[derive(Debug)]
+pub(crate) struct PendingFrame {
+    pub frame: u64,
+    pub rgba: Vec<[u8; 4]>,
+    pub depth: Option<Vec<f32>>,
+    pub primid: Option<Vec<u32>>,
+    covered: Vec<bool>,
+    /// Pixels covered so far (each counted once).
+    pub covered_count: usize,
+    /// Tiles received, duplicates included.
+    pub tiles_received: u32,
+    /// Tiles that brought no new pixel (reassignment duplicates).
+    pub duplicate_tiles: u32,
+    /// The scheduler's report, once it came.
+    pub done: Option<FrameStats>,
+    /// When the frame had both its report and all its pixels.
+    pub completed_at: Option<Instant>,
+    /// When the report came.
+    pub done_at: Option<Instant>,
+}
+
+impl PendingFrame {
+    fn new(frame: u64, pixels: usize) -> PendingFrame {
+        PendingFrame {
+            frame,
+            rgba: vec![[0, 0, 0, 255]; pixels],
+            depth: None,
+            primid: None,
+            covered: vec![false; pixels],
+            covered_count: 0,
+            tiles_received: 0,
+            duplicate_tiles: 0,
+            done: None,
+            completed_at: None,
+            done_at: None,
+        }
+    }
+
+    /// Whether every pixel is in.
+    pub fn pixels_complete(&self) -> bool {
+        self.covered_count == self.covered.len()
+    }
+
+    fn check_complete(&mut self, now: Instant) {
+        if self.completed_at.is_none() && self.done.is_some() && self.pixels_complete() {
+            self.completed_at = Some(now);
+        }
+    }
+
+    fn into_image(self) -> (FrameImage, FrameStats) {
+        (
+            FrameImage {
+                frame: self.frame,
+                rgba: self.rgba,
+                depth: self.depth,
+                primid: self.primid,
+            },
+            self.done.unwrap_or_default(),
+        )
+    }
+}
+
+/// A frame handed out in order.
+#[derive(Debug)]
+pub(crate) struct ReadyFrame {
+    pub image: FrameImage,
+    pub stats: FrameStats,
+    /// When it had its report and all its pixels.
+    pub completed_at: Instant,
+    /// Pixels never received (only when forced out after a grace time).
+    pub missing_pixels: usize,
+}
+
+/// The outstanding frames.
+#[derive(Debug)]
+pub(crate) struct Frames {
+    width: u32,
+    height: u32,
+    pending: BTreeMap<u64, PendingFrame>,
+    /// The next frame to hand out, in order.
+    next_out: u64,
+}
+
+impl Frames {
+    pub fn new(width: u32, height: u32) -> Frames {
+        Frames {
+            width,
+            height,
+            pending: BTreeMap::new(),
+            next_out: 0,
+        }
+    }
+
+    fn pixels(&self) -> usize {
+        self.width as usize * self.height as usize
+    }
+
+    /// Starts buffering `frame` (its camera was just sent).
+    pub fn open(&mut self, frame: u64) {
+        let n = self.pixels();
+        self.pending
+            .entry(frame)
+            .or_insert_with(|| PendingFrame::new(frame, n));
+    }
+
+    /// Frames opened and not handed out yet.
+    pub fn outstanding(&self) -> usize {
+        self.pending.len()
+    }
+
+    /// The next frame to hand out.
+    pub fn next_out(&self) -> u64 {
+        self.next_out
+    }
+
+    /// Puts a tile's pixels in place (first wins per pixel).
+    /// Returns how many new pixels it brought.
+    pub fn add_tile(&mut self, t: &TileDone, now: Instant) -> Result<usize, TileRejected> {
+        let (w, h) = (self.width, self.height);
+        let f = self
+            .pending
+            .get_mut(&t.frame)
+            .ok_or(TileRejected::UnknownFrame(t.frame))?;
+        let r = t.tile;
+        if r.w == 0
+            || r.h == 0
+            || u64::from(r.x) + u64::from(r.w) > u64::from(w)
+            || u64::from(r.y) + u64::from(r.h) > u64::from(h)
+        {
+            return Err(TileRejected::OutsideImage(format!(
+                "tile {}x{} at ({}, {}) is empty or outside the {w}x{h} image",
+                r.w, r.h, r.x, r.y
+            )));
+        }
+        let n = r.area();
+        if t.pixels.0.len() != n * 4 {
+            return Err(TileRejected::BadSize(format!(
+                "{} pixel bytes for a {}x{} tile",
+                t.pixels.0.len(),
+                r.w,
+                r.h
+            )));
+        }
+        if t.depth.as_ref().is_some_and(|d| d.0.len() != n)
+            || t.prim_ids.as_ref().is_some_and(|p| p.0.len() != n)
+        {
+            return Err(TileRejected::BadSize(format!(
+                "depth or id count differs from the {}x{} tile's pixels",
+                r.w, r.h
+            )));
+        }
+        let total = w as usize * h as usize;
+        if t.depth.is_some() && f.depth.is_none() {
+            f.depth = Some(vec![f32::INFINITY; total]);
+        }
+        if t.prim_ids.is_some() && f.primid.is_none() {
+            f.primid = Some(vec![u32::MAX; total]);
+        }
+        f.tiles_received += 1;
+        let mut new = 0;
+        for row in 0..r.h as usize {
+            let y = r.y as usize + row;
+            for col in 0..r.w as usize {
+                let dst = y * w as usize + r.x as usize + col;
+                if f.covered[dst] {
+                    continue;
+                }
+                let src = row * r.w as usize + col;
+                f.covered[dst] = true;
+                new += 1;
+                let p = &t.pixels.0[src * 4..src * 4 + 4];
+                f.rgba[dst] = [p[0], p[1], p[2], p[3]];
+                if let (Some(d), Some(out)) = (&t.depth, &mut f.depth) {
+                    out[dst] = d.0[src];
+                }
+                if let (Some(ids), Some(out)) = (&t.prim_ids, &mut f.primid) {
+                    out[dst] = ids.0[src];
+                }
+            }
+        }
+        if new == 0 {
+            f.duplicate_tiles += 1;
+        }
+        f.covered_count += new;
+        f.check_complete(now);
+        Ok(new)
+    }
+
+    /// Records the scheduler's report for `frame`; false if the frame is
+    /// not outstanding (the report is then ignored).
+    pub fn frame_done(&mut self, frame: u64, stats: FrameStats, now: Instant) -> bool {
+        let Some(f) = self.pending.get_mut(&frame) else {
+            return false;
+        };
+        if f.done.is_none() {
+            f.done = Some(stats);
+            f.done_at = Some(now);
+        }
+        f.check_complete(now);
+        true
+    }
+
+    /// The next frame in order, if it is complete.
+    pub fn pop_ready(&mut self) -> Option<ReadyFrame> {
+        let f = self.pending.get(&self.next_out)?;
+        let completed_at = f.completed_at?;
+        let f = self.pending.remove(&self.next_out)?;
+        self.next_out += 1;
+        let (image, stats) = f.into_image();
+        Some(ReadyFrame {
+            image,
+            stats,
+            completed_at,
+            missing_pixels: 0,
+        })
+    }
+
+    /// When the next frame in order got its report but still lacks pixels:
+    /// since when, and how many are missing.
+    pub fn stuck_next(&self) -> Option<(Instant, usize)> {
+        let f = self.pending.get(&self.next_out)?;
+        if f.completed_at.is_some() {
+            return None;
+        }
+        let at = f.done_at?;
+        Some((at, f.covered.len() - f.covered_count))
+    }
+
+    /// Hands out the next frame as it is (missing pixels stay black).
+    pub fn force_next(&mut self, now: Instant) -> Option<ReadyFrame> {
+        let f = self.pending.remove(&self.next_out)?;
+        self.next_out += 1;
+        let missing = f.covered.len() - f.covered_count;
+        let completed_at = f.completed_at.unwrap_or(now);
+        let (image, stats) = f.into_image();
+        Some(ReadyFrame {
+            image,
+            stats,
+            completed_at,
+            missing_pixels: missing,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use dray_protocol::{Blob, TileRect, TileStats};
+
+    fn tile(frame: u64, x: u32, y: u32, w: u32, h: u32, v: u8) -> TileDone {
+        TileDone {
+            frame,
+            tile: TileRect { x, y, w, h },
+            pixels: Blob(vec![v; (w * h * 4) as usize]),
+            depth: None,
+            prim_ids: None,
+            stats: TileStats::default(),
+        }
+    }
+
+    #[test]
+    fn in_order_first_wins() {
+        let now = Instant::now();
+        let mut f = Frames::new(4, 2);
+        f.open(0);
+        f.open(1);
+        assert_eq!(f.add_tile(&tile(1, 0, 0, 4, 2, 9), now), Ok(8));
+        assert!(f.frame_done(1, FrameStats::default(), now));
+        assert!(f.pop_ready().is_none(), "frame 1 waits for frame 0");
+        assert_eq!(f.add_tile(&tile(0, 0, 0, 2, 2, 1), now), Ok(4));
+        assert_eq!(f.add_tile(&tile(0, 0, 0, 2, 2, 7), now), Ok(0));
+        assert_eq!(f.add_tile(&tile(0, 2, 0, 2, 2, 2), now), Ok(4));
+        assert!(f.pop_ready().is_none(), "no report yet");
+        assert!(f.frame_done(0, FrameStats::default(), now));
+        let a = f.pop_ready().unwrap();
+        assert_eq!(a.image.frame, 0);
+        assert_eq!(a.image.rgba[0], [1; 4]);
+        assert_eq!(a.image.rgba[3], [2; 4]);
+        assert_eq!(f.pop_ready().unwrap().image.frame, 1);
+        assert!(matches!(
+            f.add_tile(&tile(0, 0, 0, 1, 1, 0), now),
+            Err(TileRejected::UnknownFrame(0))
+        ));
+    }
+}

@@ -1,0 +1,362 @@
+//! Per-frame metrics, the `metrics.csv` file and the run's summary.
+
+use super::FrameImage;
+use dray_protocol::FrameStats;
+use serde::Serialize;
+use std::fs::File;
+use std::io::{self, Write};
+use std::path::{Path, PathBuf};
+
+/// The figures of one displayed frame.
+#[derive(Clone, Debug, Serialize)]
+pub struct FrameMetrics {
+    /// Frame number.
+    pub frame: u64,
+    /// Time since the previous frame was shown (the first frame: since the
+    /// first camera was sent), milliseconds.
+    pub frame_ms: f64,
+    /// `1000 / frame_ms` (a frame time under 1 µs counts as 1 µs).
+    pub fps: f64,
+    /// Rays traced for the frame.
+    pub rays: u64,
+    /// Rays per frame time, millions per second.
+    pub mrays_per_s: f64,
+    /// Tiles in the frame.
+    pub tiles: u32,
+    /// Tiles reassigned (a client lost or too slow).
+    pub reassigned: u32,
+    /// Voxel bytes fetched.
+    pub bytes_fetched: u64,
+    /// Voxel cache misses.
+    pub misses: u64,
+    /// Voxels entered, summed over tiles.
+    pub voxels_touched: u64,
+    /// `1 - misses / voxels_touched` (1 when none was touched).
+    pub cache_hit_rate: f64,
+    /// Tiles' stall time waiting for voxels, summed, milliseconds.
+    pub stall_ms: f64,
+    /// Tiles per client, e.g. `client-0:150 client-1:150`.
+    pub tiles_per_client: String,
+}
+
+/// The CSV columns, in order.
+pub const CSV_HEADER: &str = "frame,frame_ms,fps,rays,mrays_per_s,tiles,reassigned,bytes_fetched,misses,voxels_touched,cache_hit_rate,stall_ms,tiles_per_client";
+
+impl FrameMetrics {
+    /// The metrics of `frame` with `stats`, shown `frame_ms` after the
+    /// previous one.
+    pub fn compute(frame: u64, stats: &FrameStats, frame_ms: f64) -> FrameMetrics {
+        let frame_ms = frame_ms.max(0.0);
+        let ms = frame_ms.max(1e-3);
+        let cache_hit_rate = if stats.voxels_touched == 0 {
+            1.0
+        } else {
+            (1.0 - stats.misses as f64 / stats.voxels_touched as f64).clamp(0.0, 1.0)
+        };
+        let tiles_per_client = stats
+            .clients
+            .as_slice()
+            .iter()
+            .map(|c| format!("{}:{}", c.node, c.tiles))
+            .collect::<Vec<_>>()
+            .join(" ");
+        FrameMetrics {
+            frame,
+            frame_ms,
+            fps: 1000.0 / ms,
+            rays: stats.rays,
+            mrays_per_s: stats.rays as f64 / (ms * 1e3),
+            tiles: stats.tiles,
+            reassigned: stats.reassigned,
+            bytes_fetched: stats.bytes_fetched,
+            misses: stats.misses,
+            voxels_touched: stats.voxels_touched,
+            cache_hit_rate,
+            stall_ms: stats.stall_us as f64 / 1e3,
+            tiles_per_client,
+        }
+    }
+
+    /// One CSV row (no newline), columns as [`CSV_HEADER`].
+    pub fn csv_row(&self) -> String {
+        format!(
+            "{},{:.3},{:.3},{},{:.3},{},{},{},{},{},{:.6},{:.3},{}",
+            self.frame,
+            self.frame_ms,
+            self.fps,
+            self.rays,
+            self.mrays_per_s,
+            self.tiles,
+            self.reassigned,
+            self.bytes_fetched,
+            self.misses,
+            self.voxels_touched,
+            self.cache_hit_rate,
+            self.stall_ms,
+            csv_field(&self.tiles_per_client)
+        )
+    }
+}
+
+fn csv_field(s: &str) -> String {
+    if s.contains([',', '"', '\n', '\r']) {
+        format!("\"{}\"", s.replace('"', "\"\""))
+    } else {
+        s.to_string()
+    }
+}
+
+/// `metrics.csv`: the header when created, then one row per frame, each
+/// flushed, so a run that is killed keeps the rows written so far.
+pub(crate) struct CsvLog {
+    path: PathBuf,
+    file: File,
+}
+
+impl CsvLog {
+    pub fn create(path: &Path) -> io::Result<CsvLog> {
+        let mut file = File::create(path)?;
+        writeln!(file, "{CSV_HEADER}")?;
+        file.flush()?;
+        Ok(CsvLog {
+            path: path.to_path_buf(),
+            file,
+        })
+    }
+
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    pub fn append(&mut self, m: &FrameMetrics) -> io::Result<()> {
+        // One write per row: a killed run never leaves half a row behind
+        // a complete one.
+        let line = format!("{}\n", m.csv_row());
+        self.file.write_all(line.as_bytes())?;
+        self.file.flush()
+    }
+}
+
+/// What a display run showed.
+#[derive(Clone, Debug)]
+pub struct DisplaySummary {
+    /// Per frame, in order.
+    pub frames: Vec<FrameMetrics>,
+    /// The images (only when `keep_frames`).
+    pub images: Vec<FrameImage>,
+    /// Image width.
+    pub width: u32,
+    /// Image height.
+    pub height: u32,
+    /// Frames asked for (cameras in the options).
+    pub frames_requested: usize,
+    /// Whether every frame asked for was shown (false after a Shutdown).
+    pub complete: bool,
+    /// Why the run stopped early, if it did.
+    pub stopped_early: Option<String>,
+    /// From the first camera sent to the last frame shown, seconds.
+    pub seconds: f64,
+    /// Frames shown per second over `seconds`.
+    pub mean_fps: f64,
+    /// Mean frame time, milliseconds.
+    pub mean_frame_ms: f64,
+    /// Longest frame time, milliseconds.
+    pub max_frame_ms: f64,
+    /// Rays traced in all.
+    pub total_rays: u64,
+    /// Rays per second over the run, millions.
+    pub mrays_per_s: f64,
+    /// Voxel bytes fetched in all.
+    pub total_bytes_fetched: u64,
+    /// Cache misses in all.
+    pub total_misses: u64,
+    /// Voxels touched in all.
+    pub total_voxels_touched: u64,
+    /// Over the run, `1 - misses / voxels_touched`.
+    pub cache_hit_rate: f64,
+    /// Tiles reassigned in all.
+    pub total_reassigned: u64,
+    /// Stall time summed over tiles, milliseconds.
+    pub total_stall_ms: f64,
+    /// Tiles ignored (unknown frame, outside the image, bad sizes).
+    pub tiles_ignored: u64,
+    /// Tiles that brought no new pixel (reassignment duplicates).
+    pub duplicate_tiles: u64,
+    /// Pixels that never arrived in frames shown anyway (a lost tile).
+    pub missing_pixels: u64,
+}
+
+impl DisplaySummary {
+    pub(crate) fn new(width: u32, height: u32, frames_requested: usize) -> DisplaySummary {
+        DisplaySummary {
+            frames: Vec::new(),
+            images: Vec::new(),
+            width,
+            height,
+            frames_requested,
+            complete: frames_requested == 0,
+            stopped_early: None,
+            seconds: 0.0,
+            mean_fps: 0.0,
+            mean_frame_ms: 0.0,
+            max_frame_ms: 0.0,
+            total_rays: 0,
+            mrays_per_s: 0.0,
+            total_bytes_fetched: 0,
+            total_misses: 0,
+            total_voxels_touched: 0,
+            cache_hit_rate: 1.0,
+            total_reassigned: 0,
+            total_stall_ms: 0.0,
+            tiles_ignored: 0,
+            duplicate_tiles: 0,
+            missing_pixels: 0,
+        }
+    }
+
+    /// Adds a shown frame's metrics.
+    pub(crate) fn push(&mut self, m: FrameMetrics) {
+        self.total_rays += m.rays;
+        self.total_bytes_fetched += m.bytes_fetched;
+        self.total_misses += m.misses;
+        self.total_voxels_touched += m.voxels_touched;
+        self.total_reassigned += u64::from(m.reassigned);
+        self.total_stall_ms += m.stall_ms;
+        self.max_frame_ms = self.max_frame_ms.max(m.frame_ms);
+        self.frames.push(m);
+    }
+
+    /// Fills the run-wide figures; `seconds` from the first camera to the
+    /// last frame shown.
+    pub(crate) fn finish(&mut self, seconds: f64) {
+        let n = self.frames.len();
+        self.seconds = seconds;
+        if n > 0 {
+            self.mean_frame_ms = self.frames.iter().map(|m| m.frame_ms).sum::<f64>() / n as f64;
+        }
+        if seconds > 0.0 {
+            self.mean_fps = n as f64 / seconds;
+            self.mrays_per_s = self.total_rays as f64 / seconds / 1e6;
+        }
+        self.cache_hit_rate = if self.total_voxels_touched == 0 {
+            1.0
+        } else {
+            (1.0 - self.total_misses as f64 / self.total_voxels_touched as f64).clamp(0.0, 1.0)
+        };
+    }
+
+    /// A few lines for people.
+    pub fn print_text(&self) -> String {
+        let mut s = format!(
+            "{} of {} frames of {}x{} in {:.2} s: {:.2} fps (frame time mean {:.1} ms, max {:.1} ms)\n",
+            self.frames.len(),
+            self.frames_requested,
+            self.width,
+            self.height,
+            self.seconds,
+            self.mean_fps,
+            self.mean_frame_ms,
+            self.max_frame_ms
+        );
+        s += &format!(
+            "rays {} ({:.2} Mrays/s), voxels fetched {} ({} misses, cache hit rate {:.1} %), stall {:.1} ms, tiles reassigned {}\n",
+            self.total_rays,
+            self.mrays_per_s,
+            human_bytes(self.total_bytes_fetched),
+            self.total_misses,
+            self.cache_hit_rate * 100.0,
+            self.total_stall_ms,
+            self.total_reassigned
+        );
+        if self.tiles_ignored > 0 || self.missing_pixels > 0 {
+            s += &format!(
+                "tiles ignored {}, pixels missing {}\n",
+                self.tiles_ignored, self.missing_pixels
+            );
+        }
+        if let Some(why) = &self.stopped_early {
+            s += &format!("stopped early: {why}\n");
+        }
+        s
+    }
+
+    /// The summary (without images) as JSON.
+    pub fn to_json(&self) -> serde_json::Value {
+        serde_json::json!({
+            "width": self.width,
+            "height": self.height,
+            "frames_requested": self.frames_requested,
+            "frames_shown": self.frames.len(),
+            "complete": self.complete,
+            "stopped_early": self.stopped_early,
+            "seconds": finite(self.seconds),
+            "mean_fps": finite(self.mean_fps),
+            "mean_frame_ms": finite(self.mean_frame_ms),
+            "max_frame_ms": finite(self.max_frame_ms),
+            "total_rays": self.total_rays,
+            "mrays_per_s": finite(self.mrays_per_s),
+            "total_bytes_fetched": self.total_bytes_fetched,
+            "total_misses": self.total_misses,
+            "total_voxels_touched": self.total_voxels_touched,
+            "cache_hit_rate": finite(self.cache_hit_rate),
+            "total_reassigned": self.total_reassigned,
+            "total_stall_ms": finite(self.total_stall_ms),
+            "tiles_ignored": self.tiles_ignored,
+            "duplicate_tiles": self.duplicate_tiles,
+            "missing_pixels": self.missing_pixels,
+            "frames": self.frames,
+        })
+    }
+}
+
+fn finite(x: f64) -> f64 {
+    if x.is_finite() {
+        x
+    } else {
+        0.0
+    }
+}
+
+fn human_bytes(b: u64) -> String {
+    const UNITS: [&str; 5] = ["B", "KiB", "MiB", "GiB", "TiB"];
+    let mut v = b as f64;
+    let mut u = 0;
+    while v >= 1024.0 && u + 1 < UNITS.len() {
+        v /= 1024.0;
+        u += 1;
+    }
+    if u == 0 {
+        format!("{b} B")
+    } else {
+        format!("{v:.1} {}", UNITS[u])
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn metrics_from_stats() {
+        let stats = FrameStats {
+            tiles: 4,
+            rays: 2_000_000,
+            misses: 5,
+            voxels_touched: 20,
+            stall_us: 1500,
+            ..FrameStats::default()
+        };
+        let m = FrameMetrics::compute(3, &stats, 100.0);
+        assert_eq!(m.fps, 10.0);
+        assert_eq!(m.mrays_per_s, 20.0);
+        assert_eq!(m.cache_hit_rate, 0.75);
+        assert_eq!(m.stall_ms, 1.5);
+        assert_eq!(
+            m.csv_row().split(',').count(),
+            CSV_HEADER.split(',').count()
+        );
+        let none = FrameMetrics::compute(0, &FrameStats::default(), 0.0);
+        assert_eq!(none.cache_hit_rate, 1.0);
+        assert!(none.fps.is_finite());
+    }
+}

@@ -1,0 +1,476 @@
+//! The live web viewer: a tiny HTTP/1.1 server (GET and HEAD only, one
+//! request per connection) on a tokio listener, without dependencies.
+//!
+//! - `/` a page that shows the latest complete frame and its figures and
+//!   refreshes them (it polls `/metrics.json` and loads `/frame.png?n=N`
+//!   when a new frame is there);
+//! - `/frame.png` the latest frame (503 before the first one);
+//! - `/metrics.json` the latest [`FrameMetrics`] (`null` before the first).
+//!
+//! Requests are bounded: the head must fit in [`MAX_HEAD`] bytes and arrive
+//! within [`READ_TIMEOUT`], at most [`MAX_CONNECTIONS`] are served at once
+//! (more are closed at once), and anything that is not a well-formed GET
+//! gets a 4xx answer; nothing a client sends can stop the server.
+
+use super::{FrameImage, FrameMetrics};
+use std::io;
+use std::net::SocketAddr;
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::Duration;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::{TcpListener, TcpStream};
+use tokio::sync::Semaphore;
+use tokio::task::JoinHandle;
+use tracing::{debug, info, warn};
+
+/// Largest request head (request line and headers), bytes.
+pub const MAX_HEAD: usize = 8 << 10;
+/// Time a client has to send its request head.
+pub const READ_TIMEOUT: Duration = Duration::from_secs(5);
+/// Time a client has to take the answer.
+pub const WRITE_TIMEOUT: Duration = Duration::from_secs(20);
+/// Bytes read and dropped after refusing a request, before closing.
+const LINGER_BYTES: usize = 64 << 10;
+/// Time spent on that at most.
+const LINGER_TIME: Duration = Duration::from_secs(1);
+/// Connections served at once.
+pub const MAX_CONNECTIONS: usize = 64;
+
+#[derive(Default)]
+struct Latest {
+    width: u32,
+    height: u32,
+    frame: Option<u64>,
+    rgba: Arc<Vec<[u8; 4]>>,
+    /// The PNG of `frame`, encoded on the first request for it.
+    png: Option<(u64, Arc<Vec<u8>>)>,
+    metrics_json: Option<String>,
+}
+
+fn lock(m: &Mutex<Latest>) -> MutexGuard<'_, Latest> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// A running viewer; stops when dropped.
+pub struct WebViewer {
+    addr: SocketAddr,
+    latest: Arc<Mutex<Latest>>,
+    task: JoinHandle<()>,
+}
+
+impl WebViewer {
+    /// Listens on `addr` (port 0: any free port, see [`Self::local_addr`]).
+    pub async fn start(addr: SocketAddr) -> io::Result<WebViewer> {
+        let listener = TcpListener::bind(addr).await?;
+        let addr = listener.local_addr()?;
+        let latest = Arc::new(Mutex::new(Latest::default()));
+        let task = tokio::spawn(serve(listener, latest.clone()));
+        info!("web viewer on http://{addr}/");
+        Ok(WebViewer { addr, latest, task })
+    }
+
+    /// Where it listens.
+    pub fn local_addr(&self) -> SocketAddr {
+        self.addr
+    }
+
+    /// Shows `image` (of `width × height`) and its metrics from now on.
+    pub fn publish(&self, width: u32, height: u32, image: &FrameImage, metrics: &FrameMetrics) {
+        let json = serde_json::to_string(metrics).ok();
+        let mut l = lock(&self.latest);
+        l.width = width;
+        l.height = height;
+        l.frame = Some(image.frame);
+        l.rgba = Arc::new(image.rgba.clone());
+        l.png = None;
+        l.metrics_json = json;
+    }
+}
+
+impl Drop for WebViewer {
+    fn drop(&mut self) {
+        self.task.abort();
+    }
+}
+
+async fn serve(listener: TcpListener, latest: Arc<Mutex<Latest>>) {
+    let slots = Arc::new(Semaphore::new(MAX_CONNECTIONS));
+    loop {
+        let (stream, peer) = match listener.accept().await {
+            Ok(c) => c,
+            Err(e) => {
+                // Out of file descriptors and the like: wait a little.
+                warn!("web viewer: accept failed: {e}");
+                tokio::time::sleep(Duration::from_millis(50)).await;
+                continue;
+            }
+        };
+        let Ok(permit) = slots.clone().try_acquire_owned() else {
+            debug!("web viewer: too many connections, closing {peer}");
+            continue;
+        };
+        let latest = latest.clone();
+        tokio::spawn(async move {
+            if let Err(e) = connection(stream, &latest).await {
+                debug!("web viewer: {peer}: {e}");
+            }
+            drop(permit);
+        });
+    }
+}
+
+struct Response {
+    status: u16,
+    content_type: &'static str,
+    body: Arc<Vec<u8>>,
+    extra: &'static str,
+}
+
+impl Response {
+    fn text(status: u16, body: &str) -> Response {
+        Response {
+            status,
+            content_type: "text/plain; charset=utf-8",
+            body: Arc::new(format!("{body}\n").into_bytes()),
+            extra: "",
+        }
+    }
+}
+
+fn reason(status: u16) -> &'static str {
+    match status {
+        200 => "OK",
+        400 => "Bad Request",
+        404 => "Not Found",
+        405 => "Method Not Allowed",
+        408 => "Request Timeout",
+        431 => "Request Header Fields Too Large",
+        503 => "Service Unavailable",
+        _ => "Error",
+    }
+}
+
+/// Reads the request head: `Ok(Err(status))` for a request to refuse.
+async fn read_head(stream: &mut TcpStream) -> io::Result<Result<Vec<u8>, u16>> {
+    let mut buf = Vec::with_capacity(1024);
+    let mut chunk = [0u8; 1024];
+    let read = async {
+        loop {
+            if let Some(end) = head_end(&buf) {
+                buf.truncate(end);
+                return Ok(Ok(buf));
+            }
+            if buf.len() > MAX_HEAD {
+                return Ok(Err(431));
+            }
+            let n = stream.read(&mut chunk).await?;
+            if n == 0 {
+                // Closed before the head ended.
+                return if buf.is_empty() {
+                    Err(io::Error::new(io::ErrorKind::UnexpectedEof, "closed"))
+                } else {
+                    Ok(Err(400))
+                };
+            }
+            buf.extend_from_slice(&chunk[..n]);
+        }
+    };
+    match tokio::time::timeout(READ_TIMEOUT, read).await {
+        Ok(r) => r,
+        Err(_) => Ok(Err(408)),
+    }
+}
+
+fn head_end(buf: &[u8]) -> Option<usize> {
+    let crlf = buf.windows(4).position(|w| w == b"\r\n\r\n");
+    let lf = buf.windows(2).position(|w| w == b"\n\n");
+    match (crlf, lf) {
+        (Some(a), Some(b)) => Some(a.min(b)),
+        (a, b) => a.or(b),
+    }
+}
+
+async fn connection(mut stream: TcpStream, latest: &Mutex<Latest>) -> io::Result<()> {
+    let (resp, head_only) = match read_head(&mut stream).await? {
+        Err(status) => (Response::text(status, reason(status)), false),
+        Ok(head) => match parse_request_line(&head) {
+            Err(status) => (Response::text(status, reason(status)), false),
+            Ok((method, path)) => (route(&path, latest), method == "HEAD"),
+        },
+    };
+    let head = format!(
+        "HTTP/1.1 {} {}\r\nContent-Type: {}\r\nContent-Length: {}\r\nCache-Control: no-store\r\nConnection: close\r\n{}\r\n",
+        resp.status,
+        reason(resp.status),
+        resp.content_type,
+        resp.body.len(),
+        resp.extra
+    );
+    let write = async {
+        stream.write_all(head.as_bytes()).await?;
+        if !head_only {
+            stream.write_all(&resp.body).await?;
+        }
+        stream.flush().await?;
+        stream.shutdown().await
+    };
+    match tokio::time::timeout(WRITE_TIMEOUT, write).await {
+        Ok(r) => r?,
+        Err(_) => return Err(io::Error::new(io::ErrorKind::TimedOut, "write timed out")),
+    }
+    if resp.status >= 400 {
+        // A refused request may have left bytes unread; closing on them
+        // would reset the connection and lose the answer. Drain a bounded
+        // amount for a bounded time first (a "lingering close").
+        let mut sink = [0u8; 4096];
+        let mut left = LINGER_BYTES;
+        let drain = async {
+            while left > 0 {
+                match stream.read(&mut sink).await {
+                    Ok(0) | Err(_) => break,
+                    Ok(n) => left = left.saturating_sub(n),
+                }
+            }
+        };
+        let _ = tokio::time::timeout(LINGER_TIME, drain).await;
+    }
+    Ok(())
+}
+
+/// `(method, path without the query)` of a GET or HEAD request, or the
+/// status to answer.
+fn parse_request_line(head: &[u8]) -> Result<(String, String), u16> {
+    let text = std::str::from_utf8(head).map_err(|_| 400u16)?;
+    let line = text.lines().next().ok_or(400u16)?;
+    let mut parts = line.split(' ');
+    let (Some(method), Some(target), Some(version), None) =
+        (parts.next(), parts.next(), parts.next(), parts.next())
+    else {
+        return Err(400);
+    };
+    if !version.starts_with("HTTP/1.") || !target.starts_with('/') {
+        return Err(400);
+    }
+    if method.is_empty() || !method.bytes().all(|b| b.is_ascii_uppercase()) {
+        return Err(400);
+    }
+    if method != "GET" && method != "HEAD" {
+        return Err(405);
+    }
+    let path = target.split(['?', '#']).next().unwrap_or("/");
+    Ok((method.to_string(), path.to_string()))
+}
+
+fn route(path: &str, latest: &Mutex<Latest>) -> Response {
+    match path {
+        "/" | "/index.html" => Response {
+            status: 200,
+            content_type: "text/html; charset=utf-8",
+            body: Arc::new(PAGE.as_bytes().to_vec()),
+            extra: "",
+        },
+        "/frame.png" => {
+            let (frame, w, h, rgba) = {
+                let mut l = lock(latest);
+                let Some(frame) = l.frame else {
+                    return Response {
+                        extra: "Retry-After: 1\r\n",
+                        ..Response::text(503, "no frame yet")
+                    };
+                };
+                if let Some((f, png)) = &l.png {
+                    if *f == frame {
+                        return png_response(png.clone());
+                    }
+                }
+                l.png = None;
+                (frame, l.width, l.height, l.rgba.clone())
+            };
+            // Encode outside the lock; the first request for a frame
+            // caches it for the others.
+            let png = Arc::new(encode_png(w, h, &rgba));
+            let mut l = lock(latest);
+            if l.frame == Some(frame) {
+                l.png = Some((frame, png.clone()));
+            }
+            png_response(png)
+        }
+        "/metrics.json" => {
+            let json = lock(latest)
+                .metrics_json
+                .clone()
+                .unwrap_or_else(|| "null".into());
+            Response {
+                status: 200,
+                content_type: "application/json",
+                body: Arc::new(json.into_bytes()),
+                extra: "",
+            }
+        }
+        _ => Response::text(404, "not found"),
+    }
+}
+
+fn png_response(png: Arc<Vec<u8>>) -> Response {
+    Response {
+        status: 200,
+        content_type: "image/png",
+        body: png,
+        extra: "",
+    }
+}
+
+const CRC_TABLE: [u32; 256] = {
+    let mut t = [0u32; 256];
+    let mut n = 0;
+    while n < 256 {
+        let mut c = n as u32;
+        let mut k = 0;
+        while k < 8 {
+            c = if c & 1 != 0 {
+                0xEDB8_8320 ^ (c >> 1)
+            } else {
+                c >> 1
+            };
+            k += 1;
+        }
+        t[n] = c;
+        n += 1;
+    }
+    t
+};
+
+/// CRC-32 (ISO 3309, as in PNG chunks).
+pub fn crc32(parts: &[&[u8]]) -> u32 {
+    let mut c = 0xFFFF_FFFFu32;
+    for p in parts {
+        for &b in *p {
+            c = CRC_TABLE[((c ^ u32::from(b)) & 0xFF) as usize] ^ (c >> 8);
+        }
+    }
+    c ^ 0xFFFF_FFFF
+}
+
+fn chunk(out: &mut Vec<u8>, kind: &[u8; 4], data: &[u8]) {
+    out.extend_from_slice(&(data.len() as u32).to_be_bytes());
+    out.extend_from_slice(kind);
+    out.extend_from_slice(data);
+    out.extend_from_slice(&crc32(&[kind, data]).to_be_bytes());
+}
+
+/// An 8-bit RGBA PNG of `rgba` (rows top to bottom). The image data is
+/// stored uncompressed (zlib "stored" blocks): encoding costs a copy and
+/// two checksums, which suits a viewer on a fast link.
+pub fn encode_png(width: u32, height: u32, rgba: &[[u8; 4]]) -> Vec<u8> {
+    let row = width as usize * 4;
+    let mut raw = Vec::with_capacity((row + 1) * height as usize);
+    for y in 0..height as usize {
+        raw.push(0); // filter: none
+        let px = rgba
+            .get(y * width as usize..(y + 1) * width as usize)
+            .unwrap_or(&[]);
+        raw.extend_from_slice(px.as_flattened());
+        raw.resize(raw.len() + (row - px.len() * 4), 0);
+    }
+    let mut z = Vec::with_capacity(raw.len() + raw.len() / 65535 * 5 + 16);
+    z.extend_from_slice(&[0x78, 0x01]);
+    let blocks: Vec<&[u8]> = if raw.is_empty() {
+        vec![&[]]
+    } else {
+        raw.chunks(65535).collect()
+    };
+    for (i, b) in blocks.iter().enumerate() {
+        z.push(u8::from(i + 1 == blocks.len()));
+        let len = b.len() as u16;
+        z.extend_from_slice(&len.to_le_bytes());
+        z.extend_from_slice(&(!len).to_le_bytes());
+        z.extend_from_slice(b);
+    }
+    z.extend_from_slice(&adler32(&raw).to_be_bytes());
+    let mut out = Vec::with_capacity(z.len() + 64);
+    out.extend_from_slice(b"\x89PNG\r\n\x1a\n");
+    let mut ihdr = Vec::with_capacity(13);
+    ihdr.extend_from_slice(&width.to_be_bytes());
+    ihdr.extend_from_slice(&height.to_be_bytes());
+    ihdr.extend_from_slice(&[8, 6, 0, 0, 0]); // 8 bits, RGBA, deflate, filter 0, no interlace
+    chunk(&mut out, b"IHDR", &ihdr);
+    chunk(&mut out, b"IDAT", &z);
+    chunk(&mut out, b"IEND", &[]);
+    out
+}
+
+fn adler32(data: &[u8]) -> u32 {
+    let (mut a, mut b) = (1u32, 0u32);
+    for block in data.chunks(5552) {
+        for &x in block {
+            a += u32::from(x);
+            b += a;
+        }
+        a %= 65521;
+        b %= 65521;
+    }
+    (b << 16) | a
+}
+
+const PAGE: &str = r#"<!doctype html>
+<html><head><meta charset="utf-8"><title>dray</title>
+<style>
+body { background: #111; color: #ddd; font: 14px monospace; margin: 1em; }
+img { image-rendering: pixelated; max-width: 100%; border: 1px solid #333; }
+#m { white-space: pre; margin-top: .5em; }
+</style></head>
+<body>
+<div><b>dray</b> live view</div>
+<img id="f" alt="waiting for the first frame">
+<div id="m">waiting for the first frame…</div>
+<script>
+let shown = -1, loading = false;
+const img = document.getElementById('f'), m = document.getElementById('m');
+async function poll() {
+  try {
+    const r = await fetch('/metrics.json', {cache: 'no-store'});
+    const j = await r.json();
+    if (j && j.frame !== shown && !loading) {
+      loading = true;
+      const next = new Image();
+      next.onload = () => { img.src = next.src; shown = j.frame; loading = false; };
+      next.onerror = () => { loading = false; };
+      next.src = '/frame.png?n=' + j.frame;
+      m.textContent = 'frame ' + j.frame + '   ' + j.frame_ms.toFixed(1) + ' ms   ' +
+        j.fps.toFixed(2) + ' fps   ' + j.mrays_per_s.toFixed(2) + ' Mrays/s\n' +
+        'tiles ' + j.tiles + ' (reassigned ' + j.reassigned + ')   fetched ' +
+        (j.bytes_fetched / 1048576).toFixed(1) + ' MiB   misses ' + j.misses +
+        '   hit rate ' + (100 * j.cache_hit_rate).toFixed(1) + ' %   stall ' +
+        j.stall_ms.toFixed(1) + ' ms\n' + j.tiles_per_client;
+    }
+  } catch (e) { /* the display may have stopped; keep trying */ }
+  setTimeout(poll, 200);
+}
+poll();
+</script>
+</body></html>
+"#;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn request_lines() {
+        assert_eq!(
+            parse_request_line(b"GET /frame.png?n=3 HTTP/1.1\r\nHost: x"),
+            Ok(("GET".into(), "/frame.png".into()))
+        );
+        assert_eq!(parse_request_line(b"POST / HTTP/1.1"), Err(405));
+        assert_eq!(parse_request_line(b"\xff\xfe"), Err(400));
+        assert_eq!(parse_request_line(b"GET /"), Err(400));
+        assert_eq!(parse_request_line(b"GET x HTTP/1.1"), Err(400));
+        assert_eq!(parse_request_line(b""), Err(400));
+    }
+
+    #[test]
+    fn checksums() {
+        assert_eq!(crc32(&[b"123456789"]), 0xCBF4_3926);
+        assert_eq!(adler32(b"Wikipedia"), 0x11E6_0398);
+    }
+}
