@@ -2,8 +2,8 @@
 //! that meet a missing voxel wait (suspend mode) while the others go on,
 //! or the whole tile waits for each miss in turn (block mode, the
 //! demand-paging baseline the paper compares against). Each packet runs
-//! the same resumable [`PacketJob`] as [`crate::render::render`], so the
-//! pixels are the frame's, bit for bit.
+//! the same resumable per-packet state machine (`job.rs`) as
+//! [`crate::render::render`], so the pixels are the frame's, bit for bit.
 
 use crate::camera::Camera;
 use crate::job::{Ctx, PacketJob, Region};
