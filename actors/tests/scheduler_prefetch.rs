@@ -132,7 +132,11 @@ async fn hint(mb: &mut Mailbox) -> Option<PrefetchHint> {
 async fn scheduler_prefetcher_hints_the_voxels_of_each_clients_tiles() {
     let (_dir, manifest_bytes) = database();
     let manifest = Manifest::decode(&manifest_bytes).unwrap();
-    assert!(manifest.voxels.len() > 20, "{} voxels", manifest.voxels.len());
+    assert!(
+        manifest.voxels.len() > 20,
+        "{} voxels",
+        manifest.voxels.len()
+    );
 
     let net = InProcNet::new();
     let sched = net.add_node(name("scheduler"), Role::Scheduler).unwrap();
@@ -204,7 +208,10 @@ async fn scheduler_prefetcher_hints_the_voxels_of_each_clients_tiles() {
         .unwrap();
 
     // The predicted camera: the eye goes on by one more step.
-    let (e0, e1) = (Vec3::from_array(cam(0.0).eye), Vec3::from_array(cam(1.0).eye));
+    let (e0, e1) = (
+        Vec3::from_array(cam(0.0).eye),
+        Vec3::from_array(cam(1.0).eye),
+    );
     let predicted = Camera {
         eye: (e1 + (e1 - e0) * 1.0).to_array(),
         ..cam(1.0)
@@ -212,15 +219,24 @@ async fn scheduler_prefetcher_hints_the_voxels_of_each_clients_tiles() {
     let truth = brute_force(&manifest, &predicted);
     for (c, mb) in clients.iter_mut().enumerate() {
         let h = hint(mb).await.expect("a hint for each owner");
-        assert_eq!(h.frame, 2, "the hint is for the frame after the last camera");
+        assert_eq!(
+            h.frame, 2,
+            "the hint is for the frame after the last camera"
+        );
         let ids = &h.voxels.0;
         assert!(!ids.is_empty());
         let set: HashSet<u32> = ids.iter().copied().collect();
         assert_eq!(set.len(), ids.len(), "no voxel twice");
         assert!(ids.iter().all(|&v| (v as usize) < manifest.voxels.len()));
         let (first, any, nearest) = &truth[c];
-        assert!(set.is_subset(any), "client {c}: a hinted voxel is on none of its rays");
-        assert_eq!(&set, first, "client {c}: the first {PER_RAY} voxels of each ray");
+        assert!(
+            set.is_subset(any),
+            "client {c}: a hinted voxel is on none of its rays"
+        );
+        assert_eq!(
+            &set, first,
+            "client {c}: the first {PER_RAY} voxels of each ray"
+        );
         // Most urgent first: the voxels some ray enters first lead.
         let lead: HashSet<u32> = ids[..nearest.len()].iter().copied().collect();
         assert_eq!(&lead, nearest, "client {c}");

@@ -45,8 +45,16 @@ fn name(s: &str) -> Name {
 
 #[derive(Clone, Debug, PartialEq)]
 enum Event {
-    Assigned { frame: u64, tile: TileRect, client: usize },
-    Reported { frame: u64, tile: TileRect, client: usize },
+    Assigned {
+        frame: u64,
+        tile: TileRect,
+        client: usize,
+    },
+    Reported {
+        frame: u64,
+        tile: TileRect,
+        client: usize,
+    },
 }
 
 type Log = Arc<Mutex<Vec<Event>>>;
@@ -103,9 +111,11 @@ fn spawn_client(net: &InProcNet, i: usize, b: Behaviour, log: Log) -> (Bus, Join
                     if b.silent {
                         continue;
                     }
-                    log.lock()
-                        .unwrap()
-                        .push(Event::Reported { frame, tile, client: i });
+                    log.lock().unwrap().push(Event::Reported {
+                        frame,
+                        tile,
+                        client: i,
+                    });
                     let report = TileReport {
                         frame,
                         tile,
@@ -266,14 +276,8 @@ impl Cluster {
                 reason: "test over".into(),
             })
         };
-        self.display
-            .send(&names::assigner(), bye())
-            .await
-            .unwrap();
-        self.display
-            .send(&names::scheduler(), bye())
-            .await
-            .unwrap();
+        self.display.send(&names::assigner(), bye()).await.unwrap();
+        self.display.send(&names::scheduler(), bye()).await.unwrap();
         self.assigner.await.unwrap();
         let s = self.scheduler.await.unwrap();
         for (_, task) in self.clients {
@@ -365,7 +369,11 @@ async fn scheduler_assigns_every_tile_once_and_double_buffers() {
     for o in &owners {
         assert_eq!((o.width, o.height, o.tile_size), (W, H, 32));
         assert_eq!(o.owners.0.len(), grid.count());
-        assert!(o.owners.0.iter().all(|&i| (i as usize) < o.clients.as_slice().len()));
+        assert!(o
+            .owners
+            .0
+            .iter()
+            .all(|&i| (i as usize) < o.clients.as_slice().len()));
     }
     // Double buffering: frame k+1's first tile goes out before frame k's
     // last report, and only once frame k is fully assigned.
@@ -427,7 +435,10 @@ async fn affinity_overlap(affinity: bool) -> (f64, f64) {
     // Both clients did a fair share.
     let f2 = c.assignments_in(2, &grid);
     let first = f2.values().filter(|v| v[0] == 0).count();
-    assert!((16..=48).contains(&first), "client 0 got {first} of 64 tiles");
+    assert!(
+        (16..=48).contains(&first),
+        "client 0 got {first} of 64 tiles"
+    );
     c.stop().await;
     r
 }
@@ -634,7 +645,10 @@ async fn assigner_releases_one_frame_at_a_time_and_drops_the_oldest() {
     let mut released = Vec::new();
     let mut last = 2;
     loop {
-        sched.send(&names::assigner(), assigned(last)).await.unwrap();
+        sched
+            .send(&names::assigner(), assigned(last))
+            .await
+            .unwrap();
         match next(&mut sched).await {
             Some(Message::FrameStart(f)) => {
                 released.push(f.frame);

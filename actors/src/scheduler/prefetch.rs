@@ -288,12 +288,12 @@ pub async fn run_prefetcher(
                         }
                     }
                     Message::TileOwners(o) => {
-                        if p.owners.as_ref().map_or(true, |old| old.frame < o.frame) {
+                        if p.owners.as_ref().is_none_or(|old| old.frame < o.frame) {
                             p.owners = Some(o);
                         }
                     }
                     Message::CameraUpdate(u) => {
-                        if p.cams.last().map_or(true, |(s, _)| *s < u.seq) {
+                        if p.cams.last().is_none_or(|(s, _)| *s < u.seq) {
                             p.cams.push((u.seq, u.camera));
                             if p.cams.len() > 2 {
                                 p.cams.remove(0);

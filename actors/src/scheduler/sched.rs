@@ -339,11 +339,15 @@ impl Scheduler {
         }
     }
 
-    fn frame_start(&mut self, f: FrameStart) {
-        if self.frames.contains_key(&f.frame)
-            || self.prev.as_ref().is_some_and(|p| p.number >= f.frame)
-        {
+    fn frame_start(&mut self, f: FrameStart, out: &mut Vec<Out>) {
+        let active = self.frames.get(&f.frame).map(|fr| fr.announced);
+        if active.is_some() || self.prev.as_ref().is_some_and(|p| p.number >= f.frame) {
             debug!(frame = f.frame, "frame start for a known frame ignored");
+            // The assigner waits for this frame to be assigned: if it is
+            // (or is older than the last one done), say so again.
+            if active != Some(false) {
+                out.push(Out::Assigned(f.frame));
+            }
             return;
         }
         let mut frame = Frame::new(f, self.opts.tile_size);
@@ -493,7 +497,7 @@ impl Scheduler {
             },
             owners,
         ));
-        if self.prev.as_ref().map_or(true, |p| p.number < number) {
+        if self.prev.as_ref().is_none_or(|p| p.number < number) {
             self.prev = Some(Previous {
                 number,
                 grid: frame.grid,
@@ -591,7 +595,7 @@ pub async fn run_scheduler(
                 }
                 Some(Delivery::Message { from, msg }) => match msg {
                     Message::RequestWork(r) => s.request_work(from, r.slots),
-                    Message::FrameStart(f) => s.frame_start(f),
+                    Message::FrameStart(f) => s.frame_start(f, &mut out),
                     Message::TileReport(r) => s.report(&from.node, r, &mut out),
                     Message::Shutdown(r) => {
                         info!(reason = %r.reason, frames = s.summary.frames, "scheduler stops");
@@ -613,7 +617,7 @@ pub async fn run_scheduler(
             if out.is_empty() {
                 break;
             }
-            for o in out.drain(..).collect::<Vec<_>>() {
+            for o in std::mem::take(&mut out) {
                 send(&mut s, &mb, o).await;
             }
         }

@@ -53,7 +53,7 @@ impl TileGrid {
 
     /// The index of the tile `r` is exactly, if it is one of this grid's.
     pub fn index_of(&self, r: &TileRect) -> Option<usize> {
-        if r.x % self.tile_size != 0 || r.y % self.tile_size != 0 {
+        if !r.x.is_multiple_of(self.tile_size) || !r.y.is_multiple_of(self.tile_size) {
             return None;
         }
         let (cx, cy) = (r.x / self.tile_size, r.y / self.tile_size);
