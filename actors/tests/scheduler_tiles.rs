@@ -671,3 +671,28 @@ async fn assigner_releases_one_frame_at_a_time_and_drops_the_oldest() {
         .unwrap();
     task.await.unwrap().unwrap();
 }
+
+#[tokio::test(start_paused = true)]
+async fn scheduler_affinity_holds_with_double_buffering() {
+    // Cameras all sent at once: frame k+1 is handed out while frame k
+    // renders, by the owners of the last frame done.
+    let (w, h) = (256, 256);
+    let mut c = cluster(
+        options(true, Duration::from_secs(60)),
+        w,
+        h,
+        &[Behaviour::normal(), Behaviour::normal()],
+    );
+    for k in 0..6 {
+        c.camera(k).await;
+    }
+    for _ in 0..6 {
+        c.frame_done().await;
+    }
+    let grid = TileGrid::new(w, h, 32);
+    for k in 2..5 {
+        let o = overlap(&c, &grid, k, k + 1);
+        assert!(o >= 0.9, "frames {k} and {}: {o}", k + 1);
+    }
+    c.stop().await;
+}
