@@ -1,1 +1,40 @@
 //! The Scheduler, FrameAssigner and Prefetcher actors (node `scheduler`).
+//!
+//! - [`run_assigner`]: takes the display's [`CameraUpdate`]s (the `seq` is
+//!   the frame number), queues at most [`MAX_QUEUED_FRAMES`] of them and
+//!   releases one frame at a time to the scheduler ([`FrameStart`]): the
+//!   next as soon as the scheduler reports the previous one fully handed out
+//!   ([`FrameAssigned`]), so two frames are in flight (double buffering).
+//! - [`run_scheduler`]: cuts each frame into [`TileGrid`] tiles and gives
+//!   them to clients as they ask ([`RequestWork`] credits), oldest frame
+//!   first. With affinity a client gets first the tiles it rendered in the
+//!   last completed frame (costliest first by that frame's times), then
+//!   steals the next tile of the client with the most tiles left; without,
+//!   a random tile. Tiles of a lost client, or outstanding past
+//!   `max(tile_deadline, 8 × median tile time)`, go to another client (the
+//!   first report wins). A complete frame yields [`FrameDone`] for the
+//!   display and [`TileOwners`] for the prefetcher.
+//! - [`run_prefetcher`]: fetches the manifest from a store, predicts the
+//!   next camera from the last two, samples it coarsely through the
+//!   high-level BSP and sends each client a [`PrefetchHint`] with the voxels
+//!   of the tiles it owned.
+//!
+//! [`CameraUpdate`]: dray_protocol::CameraUpdate
+//! [`FrameStart`]: dray_protocol::FrameStart
+//! [`FrameAssigned`]: dray_protocol::FrameAssigned
+//! [`RequestWork`]: dray_protocol::RequestWork
+//! [`FrameDone`]: dray_protocol::FrameDone
+//! [`TileOwners`]: dray_protocol::TileOwners
+//! [`PrefetchHint`]: dray_protocol::PrefetchHint
+
+mod assigner;
+mod prefetch;
+mod sched;
+mod tiles;
+
+pub use assigner::{run_assigner, AssignerOptions, MAX_QUEUED_FRAMES};
+pub use prefetch::{
+    plan_hints, predict_camera, run_prefetcher, voxels_along, PrefetcherOptions, PrefetcherSummary,
+};
+pub use sched::{run_scheduler, SchedulerOptions, SchedulerSummary};
+pub use tiles::TileGrid;

@@ -1,0 +1,331 @@
+//! The Prefetcher actor: predicts the next camera from the last two, shoots
+//! a coarse grid of rays through the high-level BSP, and tells each client
+//! which voxels the tiles it will probably get next will enter, so that its
+//! loader fetches them before the tiles arrive.
+
+use crate::names::{StoreRoutes, CLIENT};
+use crate::settings::kernel_camera;
+use crate::ActorError;
+use dray_protocol::{
+    Address, Camera, FetchManifest, Message, Name, PackedU32, PrefetchHint, TileOwners,
+    MAX_PREFETCH_IDS,
+};
+use dray_runtime::{Delivery, Mailbox};
+use dray_scene::db::manifest::Manifest;
+use dray_scene::Ray;
+use dray_trace::scene::{TopLevel, TopNode};
+use glam::Vec3;
+use std::collections::HashMap;
+use std::time::Duration;
+use tokio::time::Instant;
+use tracing::{debug, info, warn};
+
+/// What the prefetcher needs.
+#[derive(Clone, Debug)]
+pub struct PrefetcherOptions {
+    /// The stores; the manifest is fetched from the first that answers.
+    pub stores: StoreRoutes,
+    /// One sample ray per `step` × `step` pixels (at least 1).
+    pub step: u32,
+    /// Voxels hinted along each sample ray, nearest first.
+    pub voxels_per_ray: u32,
+    /// Image width, pixels.
+    pub width: u32,
+    /// Image height, pixels.
+    pub height: u32,
+}
+
+/// What the prefetcher did, returned when it stops.
+#[derive(Clone, Debug, Default)]
+pub struct PrefetcherSummary {
+    /// Hints sent.
+    pub hints: u64,
+    /// Voxel ids in them, summed.
+    pub voxels_hinted: u64,
+}
+
+/// How long a store has to answer [`FetchManifest`] before the next is asked.
+const MANIFEST_TIMEOUT: Duration = Duration::from_secs(2);
+
+/// The camera of frame `next` predicted from the last one or two: eye and
+/// look point extrapolated linearly (per frame number), the rest as the
+/// latest. Falls back to the latest camera when the extrapolation is not a
+/// usable view.
+pub fn predict_camera(prev: Option<(u64, &Camera)>, last: (u64, &Camera), next: u64) -> Camera {
+    let (s1, c1) = last;
+    let Some((s0, c0)) = prev.filter(|(s0, _)| *s0 < s1) else {
+        return *c1;
+    };
+    let k = (next.saturating_sub(s1)) as f32 / (s1 - s0) as f32;
+    let ext = |a: [f32; 3], b: [f32; 3]| {
+        let (a, b) = (Vec3::from_array(a), Vec3::from_array(b));
+        (b + (b - a) * k).to_array()
+    };
+    let p = Camera {
+        eye: ext(c0.eye, c1.eye),
+        look: ext(c0.look, c1.look),
+        ..*c1
+    };
+    if kernel_camera(&p, 1, 1).check().is_ok() {
+        p
+    } else {
+        *c1
+    }
+}
+
+/// Walks the high-level BSP front to back along `ray` and appends to `out`
+/// the first `max` voxels whose content box the ray enters. `stack` is
+/// scratch space.
+pub fn voxels_along(
+    top: &TopLevel,
+    ray: &Ray,
+    max: usize,
+    stack: &mut Vec<u32>,
+    out: &mut Vec<u32>,
+) {
+    stack.clear();
+    stack.push(0);
+    let mut found = 0;
+    while let Some(n) = stack.pop() {
+        let n = n as usize;
+        let (Some(node), Some(b)) = (top.nodes.get(n), top.boxes.get(n)) else {
+            continue;
+        };
+        if b.is_empty() || b.ray_interval(ray, 0.0, f32::INFINITY).is_none() {
+            continue;
+        }
+        match *node {
+            TopNode::Leaf { voxel: Some(v) } => {
+                out.push(v);
+                found += 1;
+                if found >= max {
+                    return;
+                }
+            }
+            TopNode::Leaf { voxel: None } => {}
+            TopNode::Split {
+                axis,
+                pos,
+                left,
+                right,
+            } => {
+                let a = axis as usize % 3;
+                let (o, d) = (ray.origin[a], ray.dir[a]);
+                let left_first = o < pos || (o == pos && d <= 0.0);
+                let (near, far) = if left_first {
+                    (left, right)
+                } else {
+                    (right, left)
+                };
+                stack.push(far);
+                stack.push(near);
+            }
+        }
+    }
+}
+
+/// Per client node, the voxels its tiles of `camera` will probably enter,
+/// most urgent first (nearest along the rays, then most often), at most
+/// [`MAX_PREFETCH_IDS`]. Sample pixels are the centre pixels of each
+/// `step` × `step` block; each goes to the client that owned its tile in
+/// `owners` (tiles without an owner are skipped).
+pub fn plan_hints(
+    top: &TopLevel,
+    owners: &TileOwners,
+    camera: &Camera,
+    width: u32,
+    height: u32,
+    step: u32,
+    voxels_per_ray: u32,
+) -> Vec<(Name, Vec<u32>)> {
+    let step = step.max(1);
+    let basis = kernel_camera(camera, width, height).basis();
+    let grid = super::tiles::TileGrid::new(owners.width, owners.height, owners.tile_size);
+    let clients = owners.clients.as_slice();
+    // Per client: voxel → (nearest rank along a ray, how many rays).
+    let mut seen: Vec<HashMap<u32, (u32, u32)>> = vec![HashMap::new(); clients.len()];
+    let (mut stack, mut hits) = (Vec::new(), Vec::new());
+    for by in (0..height).step_by(step as usize) {
+        for bx in (0..width).step_by(step as usize) {
+            let x = bx + (step.min(width - bx)) / 2;
+            let y = by + (step.min(height - by)) / 2;
+            // The tile of the owners' image holding the same spot.
+            let ox = (u64::from(x) * u64::from(owners.width) / u64::from(width)) as u32;
+            let oy = (u64::from(y) * u64::from(owners.height) / u64::from(height)) as u32;
+            let Some(tile) = grid.tile_at(ox, oy) else {
+                continue;
+            };
+            let Some(&c) = owners.owners.0.get(tile) else {
+                continue;
+            };
+            let Some(per) = seen.get_mut(c as usize) else {
+                continue;
+            };
+            let ray = Ray {
+                origin: basis.eye,
+                dir: basis.direction(x, y),
+            };
+            hits.clear();
+            voxels_along(top, &ray, voxels_per_ray as usize, &mut stack, &mut hits);
+            for (rank, &v) in hits.iter().enumerate() {
+                let e = per.entry(v).or_insert((u32::MAX, 0));
+                e.0 = e.0.min(rank as u32);
+                e.1 += 1;
+            }
+        }
+    }
+    clients
+        .iter()
+        .zip(seen)
+        .filter(|(_, per)| !per.is_empty())
+        .map(|(name, per)| {
+            let mut v: Vec<(u32, (u32, u32))> = per.into_iter().collect();
+            v.sort_unstable_by_key(|&(id, (rank, count))| (rank, std::cmp::Reverse(count), id));
+            v.truncate(MAX_PREFETCH_IDS);
+            (name.clone(), v.into_iter().map(|(id, _)| id).collect())
+        })
+        .collect()
+}
+
+struct Prefetcher {
+    opts: PrefetcherOptions,
+    top: Option<TopLevel>,
+    owners: Option<TileOwners>,
+    /// The last two cameras, oldest first.
+    cams: Vec<(u64, Camera)>,
+    hinted_for: Option<u64>,
+    summary: PrefetcherSummary,
+}
+
+impl Prefetcher {
+    async fn hint(&mut self, mb: &Mailbox) {
+        let (Some(top), Some(owners), Some(&(seq, last))) =
+            (&self.top, &self.owners, self.cams.last())
+        else {
+            return;
+        };
+        let next = seq + 1;
+        if self.hinted_for == Some(next) {
+            return;
+        }
+        self.hinted_for = Some(next);
+        let prev = (self.cams.len() == 2).then(|| (self.cams[0].0, &self.cams[0].1));
+        let camera = predict_camera(prev, (seq, &last), next);
+        if kernel_camera(&camera, 1, 1).check().is_err() {
+            debug!(frame = next, "no usable camera to predict from");
+            return;
+        }
+        let o = &self.opts;
+        let plan = plan_hints(
+            top,
+            owners,
+            &camera,
+            o.width,
+            o.height,
+            o.step,
+            o.voxels_per_ray,
+        );
+        for (node, voxels) in plan {
+            let n = voxels.len() as u64;
+            let to = Address::new(node, Name::new(CLIENT).expect("valid actor name"));
+            let msg = Message::PrefetchHint(PrefetchHint {
+                frame: next,
+                voxels: PackedU32(voxels),
+            });
+            match mb.send(&to, msg).await {
+                Ok(()) => {
+                    self.summary.hints += 1;
+                    self.summary.voxels_hinted += n;
+                    debug!(frame = next, %to, voxels = n, "prefetch hint");
+                }
+                Err(e) => debug!(frame = next, %to, "cannot send a prefetch hint: {e}"),
+            }
+        }
+    }
+}
+
+/// Runs the prefetcher until [`Message::Shutdown`] (or the mailbox closes).
+/// It sends nothing until it has the manifest, a frame's tile owners and a
+/// camera.
+pub async fn run_prefetcher(
+    mut mb: Mailbox,
+    opts: PrefetcherOptions,
+) -> Result<PrefetcherSummary, ActorError> {
+    let stores: Vec<Address> = opts.stores.all().cloned().collect();
+    let mut p = Prefetcher {
+        opts,
+        top: None,
+        owners: None,
+        cams: Vec::new(),
+        hinted_for: None,
+        summary: PrefetcherSummary::default(),
+    };
+    let mut asked = 0usize;
+    // When to ask (again) for the manifest; None once it is here.
+    let mut ask_at = Some(Instant::now());
+    loop {
+        let wake = async {
+            match ask_at {
+                Some(t) => tokio::time::sleep_until(t).await,
+                None => std::future::pending().await,
+            }
+        };
+        tokio::select! {
+            d = mb.recv() => match d {
+                None => return Ok(p.summary),
+                Some(Delivery::Message { from, msg }) => match msg {
+                    Message::ManifestData(m) if p.top.is_none() => {
+                        match Manifest::decode(&m.data.0) {
+                            Ok(manifest) => {
+                                p.top = Some(TopLevel::from_manifest(&manifest));
+                                ask_at = None;
+                                info!(voxels = manifest.voxels.len(), %from, "prefetcher has the manifest");
+                            }
+                            Err(e) => {
+                                warn!(%from, "unusable manifest, asking another store: {e}");
+                                ask_at = Some(Instant::now() + MANIFEST_TIMEOUT / 4);
+                            }
+                        }
+                    }
+                    Message::TileOwners(o) => {
+                        if p.owners.as_ref().is_none_or(|old| old.frame < o.frame) {
+                            p.owners = Some(o);
+                        }
+                    }
+                    Message::CameraUpdate(u) => {
+                        if p.cams.last().is_none_or(|(s, _)| *s < u.seq) {
+                            p.cams.push((u.seq, u.camera));
+                            if p.cams.len() > 2 {
+                                p.cams.remove(0);
+                            }
+                        }
+                    }
+                    Message::Shutdown(r) => {
+                        info!(reason = %r.reason, hints = p.summary.hints, "prefetcher stops");
+                        return Ok(p.summary);
+                    }
+                    other => debug!(kind = other.kind().name(), %from, "prefetcher ignores"),
+                },
+                Some(Delivery::PeerUp { node, .. }) => {
+                    // A store (back) up while we still wait: ask it now.
+                    if p.top.is_none() {
+                        if let Some(i) = stores.iter().position(|s| s.node == node) {
+                            asked = i;
+                            ask_at = Some(Instant::now());
+                        }
+                    }
+                }
+                Some(Delivery::PeerDown { .. }) => {}
+            },
+            _ = wake => {
+                let to = &stores[asked % stores.len()];
+                asked += 1;
+                if let Err(e) = mb.send(to, Message::FetchManifest(FetchManifest {})).await {
+                    debug!(%to, "cannot ask for the manifest: {e}");
+                }
+                ask_at = Some(Instant::now() + MANIFEST_TIMEOUT);
+            }
+        }
+        p.hint(&mb).await;
+    }
+}

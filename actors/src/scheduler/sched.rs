@@ -1,0 +1,656 @@
+//! The Scheduler actor: cuts the frames the assigner releases into tiles and
+//! hands them to clients on demand, with tile affinity, costliest tiles
+//! first, and reassignment of the tiles of lost or silent clients.
+
+use super::tiles::TileGrid;
+use crate::ActorError;
+use dray_protocol::{
+    Address, AssignTile, BoundedVec, Camera, ClientFrameStats, FrameAssigned, FrameDone,
+    FrameStart, FrameStats, Message, Name, PackedU32, RenderSettings, TileOwners, TileReport,
+    MAX_STATS_CLIENTS,
+};
+use dray_runtime::{Delivery, Mailbox};
+use dray_scene::rng::Rng;
+use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::time::Duration;
+use tokio::time::Instant;
+use tracing::{debug, info, warn};
+
+/// How the scheduler hands out tiles.
+#[derive(Clone, Debug)]
+pub struct SchedulerOptions {
+    /// Tile side, pixels.
+    pub tile_size: u32,
+    /// Give each client first the tiles it rendered in the previous frame
+    /// (its voxel cache holds what they need); otherwise a uniformly random
+    /// unassigned tile (the baseline).
+    pub affinity: bool,
+    /// With affinity, hand out a client's tiles (and stolen tiles) costliest
+    /// first, by the previous frame's measured time of each tile.
+    pub costliest_first: bool,
+    /// A tile outstanding longer than this (and than 8 × the median tile
+    /// time of its frame so far) is given to another client too.
+    pub tile_deadline: Duration,
+    /// Where [`FrameDone`] goes.
+    pub display: Address,
+    /// Where [`FrameAssigned`] goes.
+    pub assigner: Address,
+    /// Where [`TileOwners`] goes, if there is a prefetcher.
+    pub prefetcher: Option<Address>,
+    /// Seed of the random choice without affinity.
+    pub seed: u64,
+}
+
+/// What the scheduler did, returned when it stops.
+#[derive(Clone, Debug, Default)]
+pub struct SchedulerSummary {
+    /// Frames completed.
+    pub frames: u64,
+    /// Tiles completed.
+    pub tiles: u64,
+    /// Tiles reassigned (client lost or past the deadline).
+    pub reassigned: u64,
+}
+
+/// How often outstanding tiles are checked against the deadline.
+const DEADLINE_CHECK: Duration = Duration::from_millis(20);
+/// Most credits one client may hold.
+const MAX_CREDITS: u32 = 4096;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum State {
+    /// Never assigned: in a group queue (affinity) or the pool (random).
+    Fresh,
+    /// Assigned, not reported.
+    Out,
+    /// Waiting in the retry queue for another client (it may still be
+    /// outstanding at a silent client: first report wins).
+    Retry,
+    /// Reported.
+    Done,
+}
+
+struct Tile {
+    state: State,
+    /// Assignments not reported yet: client node and when.
+    outstanding: Vec<(Name, Instant)>,
+}
+
+/// The last completed frame: what affinity and costliest-first go by.
+struct Previous {
+    number: u64,
+    grid: TileGrid,
+    costs: Vec<u64>,
+    owners: Vec<Option<Name>>,
+}
+
+struct Frame {
+    number: u64,
+    camera: Camera,
+    settings: RenderSettings,
+    grid: TileGrid,
+    tiles: Vec<Tile>,
+    /// Affinity: per previous owner (and one group for tiles nobody owned),
+    /// the fresh tiles, `pop()` giving the next one.
+    groups: Vec<Vec<usize>>,
+    group_of: HashMap<Name, usize>,
+    /// Without affinity: the fresh tiles.
+    pool: Vec<usize>,
+    /// Tiles to give to another client before any fresh one.
+    retry: VecDeque<usize>,
+    fresh_left: usize,
+    assigned_once: usize,
+    announced: bool,
+    done: usize,
+    first_assign: Option<Instant>,
+    last_report: Option<Instant>,
+    stats: FrameStats,
+    clients: BTreeMap<Name, ClientFrameStats>,
+    costs: Vec<u64>,
+    owners: Vec<Option<Name>>,
+    /// Time of each tile done so far, for the deadline's median.
+    times: Vec<u64>,
+    median: (usize, u64),
+}
+
+impl Frame {
+    fn new(f: FrameStart, tile_size: u32) -> Frame {
+        let grid = TileGrid::new(f.width, f.height, tile_size);
+        let n = grid.count();
+        Frame {
+            number: f.frame,
+            camera: f.camera,
+            settings: f.settings,
+            grid,
+            tiles: (0..n)
+                .map(|_| Tile {
+                    state: State::Fresh,
+                    outstanding: Vec::new(),
+                })
+                .collect(),
+            groups: Vec::new(),
+            group_of: HashMap::new(),
+            pool: Vec::new(),
+            retry: VecDeque::new(),
+            fresh_left: n,
+            assigned_once: 0,
+            announced: false,
+            done: 0,
+            first_assign: None,
+            last_report: None,
+            stats: FrameStats {
+                tiles: n as u32,
+                ..FrameStats::default()
+            },
+            clients: BTreeMap::new(),
+            costs: vec![0; n],
+            owners: vec![None; n],
+            times: Vec::new(),
+            median: (0, 0),
+        }
+    }
+
+    /// Sorts the fresh tiles into queues: per previous owner when `affinity`
+    /// (costliest first, or in index order), else one pool.
+    ///
+    /// Without a previous frame of the same grid every tile is in the
+    /// "nobody's" group, in row-major order: nothing is known about the
+    /// costs yet, and handing out neighbouring tiles one after another keeps
+    /// the first frame's tiles of a client spread evenly over the image.
+    fn sort_fresh(&mut self, prev: Option<&Previous>, opts: &SchedulerOptions) {
+        let fresh: Vec<usize> = (0..self.tiles.len())
+            .filter(|&i| self.tiles[i].state == State::Fresh)
+            .collect();
+        if !opts.affinity {
+            self.pool = fresh;
+            return;
+        }
+        let prev = prev.filter(|p| p.grid == self.grid);
+        self.groups = vec![Vec::new()];
+        self.group_of.clear();
+        for i in fresh {
+            let g = match prev.and_then(|p| p.owners[i].as_ref()) {
+                None => 0,
+                Some(owner) => {
+                    let next = self.groups.len();
+                    let g = *self.group_of.entry(owner.clone()).or_insert(next);
+                    if g == next {
+                        self.groups.push(Vec::new());
+                    }
+                    g
+                }
+            };
+            self.groups[g].push(i);
+        }
+        for q in &mut self.groups {
+            match prev {
+                // Ascending cost, ties by descending index: pop() gives the
+                // costliest, the lowest index first among equals.
+                Some(p) if opts.costliest_first => {
+                    q.sort_unstable_by_key(|&i| (p.costs[i], std::cmp::Reverse(i)))
+                }
+                _ => q.sort_unstable_by(|a, b| b.cmp(a)),
+            }
+        }
+    }
+
+    fn retry_for(&self, c: &Name) -> Option<usize> {
+        self.retry.iter().position(|&i| {
+            self.tiles[i].state == State::Retry
+                && !self.tiles[i].outstanding.iter().any(|(n, _)| n == c)
+        })
+    }
+
+    fn has_work_for(&self, c: &Name) -> bool {
+        self.fresh_left > 0 || self.retry_for(c).is_some()
+    }
+
+    /// The tile client `c` should render next, taken out of its queue.
+    fn pick(&mut self, c: &Name, affinity: bool, rng: &mut Rng) -> Option<usize> {
+        while let Some(&i) = self.retry.front() {
+            if self.tiles[i].state == State::Retry {
+                break;
+            }
+            self.retry.pop_front();
+        }
+        if let Some(p) = self.retry_for(c) {
+            return self.retry.remove(p);
+        }
+        if self.fresh_left == 0 {
+            return None;
+        }
+        if !affinity {
+            if self.pool.is_empty() {
+                return None;
+            }
+            let k = rng.below(self.pool.len() as u32) as usize;
+            return Some(self.pool.swap_remove(k));
+        }
+        if let Some(&g) = self.group_of.get(c) {
+            if let Some(i) = self.groups[g].pop() {
+                return Some(i);
+            }
+        }
+        // Steal: from the group with the most tiles left (the lowest group
+        // on ties, so "nobody's" tiles go first), its next (costliest) tile.
+        let (g, _) = self
+            .groups
+            .iter()
+            .enumerate()
+            .filter(|(_, q)| !q.is_empty())
+            .max_by_key(|(g, q)| (q.len(), std::cmp::Reverse(*g)))?;
+        self.groups[g].pop()
+    }
+
+    fn median_time(&mut self) -> u64 {
+        if self.median.0 != self.times.len() && !self.times.is_empty() {
+            let mut t = self.times.clone();
+            let mid = t.len() / 2;
+            let (_, m, _) = t.select_nth_unstable(mid);
+            self.median = (self.times.len(), *m);
+        }
+        self.median.1
+    }
+
+    fn summary_messages(&self) -> (FrameStats, TileOwners) {
+        let mut stats = self.stats.clone();
+        stats.time_us = match (self.first_assign, self.last_report) {
+            (Some(a), Some(b)) => b.saturating_duration_since(a).as_micros() as u64,
+            _ => 0,
+        };
+        let mut clients: Vec<ClientFrameStats> = self.clients.values().cloned().collect();
+        clients.truncate(MAX_STATS_CLIENTS);
+        stats.clients = BoundedVec::new(clients).unwrap_or_default();
+        let mut names: Vec<Name> = Vec::new();
+        let mut index: HashMap<&Name, u32> = HashMap::new();
+        let owners = self
+            .owners
+            .iter()
+            .map(|o| match o {
+                None => u32::MAX,
+                Some(n) => *index.entry(n).or_insert_with(|| {
+                    names.push(n.clone());
+                    names.len() as u32 - 1
+                }),
+            })
+            .collect();
+        names.truncate(MAX_STATS_CLIENTS);
+        let owners = TileOwners {
+            frame: self.number,
+            width: self.grid.width,
+            height: self.grid.height,
+            tile_size: self.grid.tile_size,
+            owners: PackedU32(owners),
+            clients: BoundedVec::new(names).unwrap_or_default(),
+        };
+        (stats, owners)
+    }
+}
+
+struct ClientState {
+    addr: Address,
+    credits: u32,
+}
+
+/// Something to send once the state is updated.
+enum Out {
+    Assign {
+        node: Name,
+        to: Address,
+        msg: AssignTile,
+    },
+    Assigned(u64),
+    Done(FrameDone, TileOwners),
+}
+
+struct Scheduler {
+    opts: SchedulerOptions,
+    rng: Rng,
+    /// Clients in the order they first asked for work.
+    clients: Vec<(Name, ClientState)>,
+    frames: BTreeMap<u64, Frame>,
+    prev: Option<Previous>,
+    summary: SchedulerSummary,
+    /// Where the next round-robin pass starts.
+    rr: usize,
+}
+
+impl Scheduler {
+    fn client(&mut self, node: &Name) -> Option<&mut ClientState> {
+        self.clients
+            .iter_mut()
+            .find(|(n, _)| n == node)
+            .map(|(_, c)| c)
+    }
+
+    fn request_work(&mut self, from: Address, slots: u16) {
+        match self.client(&from.node) {
+            Some(c) => {
+                c.credits = (c.credits + u32::from(slots)).min(MAX_CREDITS);
+                c.addr = from;
+            }
+            None => self.clients.push((
+                from.node.clone(),
+                ClientState {
+                    addr: from,
+                    credits: u32::from(slots).min(MAX_CREDITS),
+                },
+            )),
+        }
+    }
+
+    fn frame_start(&mut self, f: FrameStart, out: &mut Vec<Out>) {
+        let active = self.frames.get(&f.frame).map(|fr| fr.announced);
+        if active.is_some() || self.prev.as_ref().is_some_and(|p| p.number >= f.frame) {
+            debug!(frame = f.frame, "frame start for a known frame ignored");
+            // The assigner waits for this frame to be assigned: if it is
+            // (or is older than the last one done), say so again.
+            if active != Some(false) {
+                out.push(Out::Assigned(f.frame));
+            }
+            return;
+        }
+        let mut frame = Frame::new(f, self.opts.tile_size);
+        frame.sort_fresh(self.prev.as_ref(), &self.opts);
+        debug!(
+            frame = frame.number,
+            tiles = frame.tiles.len(),
+            "frame started"
+        );
+        self.frames.insert(frame.number, frame);
+    }
+
+    /// Hands out tiles while some client has credits and some frame has
+    /// work: one tile per client per pass, oldest frame first.
+    fn dispatch(&mut self, out: &mut Vec<Out>) {
+        let now = Instant::now();
+        let n = self.clients.len();
+        if n == 0 {
+            return;
+        }
+        loop {
+            let mut progress = false;
+            for k in 0..n {
+                let ci = (self.rr + k) % n;
+                let (node, state) = &mut self.clients[ci];
+                if state.credits == 0 {
+                    continue;
+                }
+                let Some(frame) = self.frames.values_mut().find(|f| f.has_work_for(node)) else {
+                    continue;
+                };
+                let Some(i) = frame.pick(node, self.opts.affinity, &mut self.rng) else {
+                    continue;
+                };
+                state.credits -= 1;
+                progress = true;
+                let t = &mut frame.tiles[i];
+                if t.state == State::Fresh {
+                    frame.fresh_left -= 1;
+                    frame.assigned_once += 1;
+                }
+                t.state = State::Out;
+                t.outstanding.push((node.clone(), now));
+                frame.first_assign.get_or_insert(now);
+                out.push(Out::Assign {
+                    node: node.clone(),
+                    to: state.addr.clone(),
+                    msg: AssignTile {
+                        frame: frame.number,
+                        tile: frame.grid.rect(i),
+                        camera: frame.camera,
+                        width: frame.grid.width,
+                        height: frame.grid.height,
+                        settings: frame.settings.clone(),
+                    },
+                });
+                if frame.assigned_once == frame.tiles.len() && !frame.announced {
+                    frame.announced = true;
+                    out.push(Out::Assigned(frame.number));
+                }
+            }
+            self.rr = (self.rr + 1) % n;
+            if !progress {
+                return;
+            }
+        }
+    }
+
+    fn report(&mut self, node: &Name, r: TileReport, out: &mut Vec<Out>) {
+        let Some(frame) = self.frames.get_mut(&r.frame) else {
+            debug!(frame = r.frame, client = %node, "report for an unknown or finished frame ignored");
+            return;
+        };
+        let Some(i) = frame.grid.index_of(&r.tile) else {
+            warn!(frame = r.frame, client = %node, tile = ?r.tile, "report for a tile that is not one of the frame's ignored");
+            return;
+        };
+        let t = &mut frame.tiles[i];
+        t.outstanding.retain(|(n, _)| n != node);
+        match t.state {
+            State::Done => return,
+            State::Fresh => {
+                warn!(frame = r.frame, client = %node, tile = i, "report for a tile never assigned ignored");
+                return;
+            }
+            State::Out | State::Retry => {}
+        }
+        t.state = State::Done;
+        frame.done += 1;
+        frame.last_report = Some(Instant::now());
+        let s = r.stats;
+        frame.costs[i] = s.time_us;
+        frame.owners[i] = Some(node.clone());
+        frame.times.push(s.time_us);
+        let fs = &mut frame.stats;
+        fs.rays += s.rays;
+        fs.misses += u64::from(s.misses);
+        fs.bytes_fetched += s.bytes_fetched;
+        fs.voxels_touched += u64::from(s.voxels_touched);
+        fs.stall_us += s.stall_us;
+        let c = frame
+            .clients
+            .entry(node.clone())
+            .or_insert_with(|| ClientFrameStats {
+                node: node.clone(),
+                tiles: 0,
+                rays: 0,
+                misses: 0,
+                bytes_fetched: 0,
+                stall_us: 0,
+            });
+        c.tiles += 1;
+        c.rays += s.rays;
+        c.misses += u64::from(s.misses);
+        c.bytes_fetched += s.bytes_fetched;
+        c.stall_us += s.stall_us;
+        if frame.done == frame.tiles.len() {
+            let number = frame.number;
+            self.complete(number, out);
+        }
+    }
+
+    fn complete(&mut self, number: u64, out: &mut Vec<Out>) {
+        let Some(frame) = self.frames.remove(&number) else {
+            return;
+        };
+        if !frame.announced {
+            out.push(Out::Assigned(number));
+        }
+        let (stats, owners) = frame.summary_messages();
+        info!(
+            frame = number,
+            tiles = stats.tiles,
+            reassigned = stats.reassigned,
+            rays = stats.rays,
+            time_ms = stats.time_us as f64 / 1000.0,
+            misses = stats.misses,
+            "frame done"
+        );
+        self.summary.frames += 1;
+        self.summary.tiles += u64::from(stats.tiles);
+        self.summary.reassigned += u64::from(stats.reassigned);
+        out.push(Out::Done(
+            FrameDone {
+                frame: number,
+                stats,
+            },
+            owners,
+        ));
+        if self.prev.as_ref().is_none_or(|p| p.number < number) {
+            self.prev = Some(Previous {
+                number,
+                grid: frame.grid,
+                costs: frame.costs,
+                owners: frame.owners,
+            });
+            // Frames still being assigned go by the newest costs and owners.
+            for f in self.frames.values_mut() {
+                if f.fresh_left > 0 {
+                    f.sort_fresh(self.prev.as_ref(), &self.opts);
+                }
+            }
+        }
+    }
+
+    /// Puts tile `i` of `frame` back for another client.
+    fn requeue(frame: &mut Frame, i: usize, why: &str, client: &Name) {
+        frame.tiles[i].state = State::Retry;
+        frame.retry.push_back(i);
+        frame.stats.reassigned += 1;
+        let r = frame.grid.rect(i);
+        warn!(frame = frame.number, tile = i, x = r.x, y = r.y, %client, "tile reassigned: {why}");
+    }
+
+    fn client_lost(&mut self, node: &Name, why: &str) {
+        let had = self.clients.len();
+        self.clients.retain(|(n, _)| n != node);
+        let mut returned = 0;
+        for frame in self.frames.values_mut() {
+            for i in 0..frame.tiles.len() {
+                let t = &mut frame.tiles[i];
+                let before = t.outstanding.len();
+                t.outstanding.retain(|(n, _)| n != node);
+                if t.outstanding.len() < before && t.outstanding.is_empty() && t.state == State::Out
+                {
+                    Self::requeue(frame, i, why, node);
+                    returned += 1;
+                }
+            }
+        }
+        if had != self.clients.len() || returned > 0 {
+            warn!(client = %node, tiles = returned, "client lost: {why}");
+        }
+    }
+
+    fn check_deadlines(&mut self) {
+        let now = Instant::now();
+        for frame in self.frames.values_mut() {
+            if frame.assigned_once == frame.done {
+                continue;
+            }
+            let median = Duration::from_micros(frame.median_time().saturating_mul(8));
+            let limit = self.opts.tile_deadline.max(median);
+            for i in 0..frame.tiles.len() {
+                let t = &frame.tiles[i];
+                if t.state != State::Out {
+                    continue;
+                }
+                let Some((who, since)) = t.outstanding.iter().max_by_key(|(_, at)| *at) else {
+                    continue;
+                };
+                if now.saturating_duration_since(*since) > limit {
+                    let who = who.clone();
+                    let why = format!("not done after {} ms", limit.as_millis());
+                    Self::requeue(frame, i, &why, &who);
+                }
+            }
+        }
+    }
+}
+
+/// Runs the scheduler until [`Message::Shutdown`] (or the mailbox closes).
+pub async fn run_scheduler(
+    mut mb: Mailbox,
+    opts: SchedulerOptions,
+) -> Result<SchedulerSummary, ActorError> {
+    let mut s = Scheduler {
+        rng: Rng::new(opts.seed),
+        opts,
+        clients: Vec::new(),
+        frames: BTreeMap::new(),
+        prev: None,
+        summary: SchedulerSummary::default(),
+        rr: 0,
+    };
+    let mut tick = tokio::time::interval(DEADLINE_CHECK);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let mut out = Vec::new();
+    loop {
+        tokio::select! {
+            d = mb.recv() => match d {
+                None => {
+                    debug!("scheduler mailbox closed");
+                    return Ok(s.summary);
+                }
+                Some(Delivery::Message { from, msg }) => match msg {
+                    Message::RequestWork(r) => s.request_work(from, r.slots),
+                    Message::FrameStart(f) => s.frame_start(f, &mut out),
+                    Message::TileReport(r) => s.report(&from.node, r, &mut out),
+                    Message::Shutdown(r) => {
+                        info!(reason = %r.reason, frames = s.summary.frames, "scheduler stops");
+                        return Ok(s.summary);
+                    }
+                    other => debug!(kind = other.kind().name(), %from, "scheduler ignores"),
+                },
+                Some(Delivery::PeerDown { node, reason }) => {
+                    s.client_lost(&node, &format!("connection lost ({reason})"))
+                }
+                Some(Delivery::PeerUp { .. }) => {}
+            },
+            _ = tick.tick() => s.check_deadlines(),
+        }
+        // Send what the state change produced; a client that cannot be
+        // reached is lost, and its tiles go to the others.
+        loop {
+            s.dispatch(&mut out);
+            if out.is_empty() {
+                break;
+            }
+            for o in std::mem::take(&mut out) {
+                send(&mut s, &mb, o).await;
+            }
+        }
+    }
+}
+
+async fn send(s: &mut Scheduler, mb: &Mailbox, o: Out) {
+    match o {
+        Out::Assign { node, to, msg } => {
+            if let Err(e) = mb.send(&to, Message::AssignTile(msg)).await {
+                s.client_lost(&node, &format!("cannot send it a tile: {e}"));
+            }
+        }
+        Out::Assigned(frame) => {
+            let to = s.opts.assigner.clone();
+            if let Err(e) = mb
+                .send(&to, Message::FrameAssigned(FrameAssigned { frame }))
+                .await
+            {
+                warn!(frame, %to, "cannot tell the frame assigner: {e}");
+            }
+        }
+        Out::Done(done, owners) => {
+            let to = s.opts.display.clone();
+            let frame = done.frame;
+            if let Err(e) = mb.send(&to, Message::FrameDone(done)).await {
+                warn!(frame, %to, "cannot tell the display the frame is done: {e}");
+            }
+            if let Some(p) = s.opts.prefetcher.clone() {
+                if let Err(e) = mb.send(&p, Message::TileOwners(owners)).await {
+                    warn!(frame, to = %p, "cannot send the tile owners: {e}");
+                }
+            }
+        }
+    }
+}

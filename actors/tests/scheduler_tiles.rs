@@ -1,0 +1,698 @@
+//! The scheduler and the frame assigner against fake clients and a fake
+//! display on the in-process network, on tokio's paused clock.
+
+use dray_actors::names;
+use dray_actors::scheduler::{
+    run_assigner, run_scheduler, AssignerOptions, SchedulerOptions, SchedulerSummary, TileGrid,
+    MAX_QUEUED_FRAMES,
+};
+use dray_protocol::{
+    Camera, CameraUpdate, FrameAssigned, FrameDone, Message, Name, Reflective, RenderSettings,
+    RequestWork, Role, Shutdown, TileOwners, TileRect, TileReport, TileStats,
+};
+use dray_runtime::{Bus, InProcNet, Mailbox};
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+use tokio::task::JoinHandle;
+
+fn settings() -> RenderSettings {
+    RenderSettings {
+        shade: true,
+        shadows: false,
+        reflection_depth: 0,
+        light_dir: [1.0, 1.0, 1.0],
+        reflective: Reflective::All,
+        reflectance: 0.5,
+        voxel_colors: false,
+        want_depth: false,
+        want_prim_ids: false,
+    }
+}
+
+fn camera(k: u64) -> Camera {
+    Camera {
+        eye: [k as f32, 1.0, 5.0],
+        look: [0.0, 0.0, 0.0],
+        up: [0.0, 1.0, 0.0],
+        fov_y_deg: 50.0,
+    }
+}
+
+fn name(s: &str) -> Name {
+    Name::new(s).unwrap()
+}
+
+#[derive(Clone, Debug, PartialEq)]
+enum Event {
+    Assigned {
+        frame: u64,
+        tile: TileRect,
+        client: usize,
+    },
+    Reported {
+        frame: u64,
+        tile: TileRect,
+        client: usize,
+    },
+}
+
+type Log = Arc<Mutex<Vec<Event>>>;
+
+/// How a fake client behaves.
+#[derive(Clone)]
+struct Behaviour {
+    slots: u16,
+    /// Time to render a tile (sleep on the paused clock).
+    render: Duration,
+    /// The `time_us` it reports for a tile.
+    cost: fn(&TileRect) -> u64,
+    /// Never reports anything.
+    silent: bool,
+}
+
+impl Behaviour {
+    fn normal() -> Behaviour {
+        Behaviour {
+            slots: 2,
+            render: Duration::from_millis(5),
+            cost: |_| 1000,
+            silent: false,
+        }
+    }
+}
+
+fn stats_for(tile: &TileRect, cost: u64) -> TileStats {
+    TileStats {
+        rays: tile.area() as u64,
+        time_us: cost,
+        voxels_touched: 2,
+        misses: 1,
+        bytes_fetched: 10,
+        stall_us: 5,
+    }
+}
+
+/// A fake client: takes tiles, renders them one at a time, reports them to
+/// the scheduler and asks for one more tile per tile done.
+fn spawn_client(net: &InProcNet, i: usize, b: Behaviour, log: Log) -> (Bus, JoinHandle<()>) {
+    let bus = net.add_node(names::client_node(i), Role::Client).unwrap();
+    let mut mb = bus.mailbox(name(names::CLIENT), 1024).unwrap();
+    let task = tokio::spawn(async move {
+        let me = mb.handle();
+        let (tx, mut rx) = tokio::sync::mpsc::unbounded_channel::<(u64, TileRect)>();
+        let worker = {
+            let me = me.clone();
+            let b = b.clone();
+            let log = log.clone();
+            tokio::spawn(async move {
+                while let Some((frame, tile)) = rx.recv().await {
+                    tokio::time::sleep(b.render).await;
+                    if b.silent {
+                        continue;
+                    }
+                    log.lock().unwrap().push(Event::Reported {
+                        frame,
+                        tile,
+                        client: i,
+                    });
+                    let report = TileReport {
+                        frame,
+                        tile,
+                        stats: stats_for(&tile, (b.cost)(&tile)),
+                    };
+                    if me
+                        .send(&names::scheduler(), Message::TileReport(report))
+                        .await
+                        .is_err()
+                    {
+                        return;
+                    }
+                    let _ = me
+                        .send(
+                            &names::scheduler(),
+                            Message::RequestWork(RequestWork { slots: 1 }),
+                        )
+                        .await;
+                }
+            })
+        };
+        let _ = me
+            .send(
+                &names::scheduler(),
+                Message::RequestWork(RequestWork { slots: b.slots }),
+            )
+            .await;
+        while let Some((_, msg)) = mb.recv_message().await {
+            match msg {
+                Message::AssignTile(a) => {
+                    log.lock().unwrap().push(Event::Assigned {
+                        frame: a.frame,
+                        tile: a.tile,
+                        client: i,
+                    });
+                    let _ = tx.send((a.frame, a.tile));
+                }
+                Message::Shutdown(_) => break,
+                _ => {}
+            }
+        }
+        worker.abort();
+    });
+    (bus, task)
+}
+
+struct Cluster {
+    net: InProcNet,
+    _sched_bus: Bus,
+    scheduler: JoinHandle<SchedulerSummary>,
+    assigner: JoinHandle<()>,
+    display: Mailbox,
+    _display_bus: Bus,
+    prefetcher: Mailbox,
+    log: Log,
+    clients: Vec<(Bus, JoinHandle<()>)>,
+}
+
+const W: u32 = 100;
+const H: u32 = 70;
+
+fn options(affinity: bool, deadline: Duration) -> SchedulerOptions {
+    SchedulerOptions {
+        tile_size: 32,
+        affinity,
+        costliest_first: true,
+        tile_deadline: deadline,
+        display: names::display(),
+        assigner: names::assigner(),
+        prefetcher: Some(names::prefetcher()),
+        seed: 7,
+    }
+}
+
+fn cluster(opts: SchedulerOptions, width: u32, height: u32, clients: &[Behaviour]) -> Cluster {
+    let net = InProcNet::new();
+    let sched_bus = net.add_node(name("scheduler"), Role::Scheduler).unwrap();
+    let smb = sched_bus.mailbox(name(names::SCHEDULER), 4096).unwrap();
+    let amb = sched_bus.mailbox(name(names::ASSIGNER), 1024).unwrap();
+    // The test plays the prefetcher: it collects the tile owners.
+    let prefetcher = sched_bus.mailbox(name(names::PREFETCHER), 1024).unwrap();
+    let display_bus = net.add_node(name("display"), Role::Display).unwrap();
+    let display = display_bus.mailbox(name(names::DISPLAY), 1024).unwrap();
+    let scheduler = tokio::spawn(async move { run_scheduler(smb, opts).await.unwrap() });
+    let assigner = tokio::spawn(async move {
+        run_assigner(
+            amb,
+            AssignerOptions {
+                scheduler: names::scheduler(),
+                prefetcher: Some(names::prefetcher()),
+                width,
+                height,
+                settings: settings(),
+            },
+        )
+        .await
+        .unwrap()
+    });
+    let log: Log = Arc::default();
+    let clients = clients
+        .iter()
+        .enumerate()
+        .map(|(i, b)| spawn_client(&net, i, b.clone(), log.clone()))
+        .collect();
+    Cluster {
+        net,
+        _sched_bus: sched_bus,
+        scheduler,
+        assigner,
+        display,
+        _display_bus: display_bus,
+        prefetcher,
+        log,
+        clients,
+    }
+}
+
+impl Cluster {
+    async fn camera(&self, k: u64) {
+        self.display
+            .send(
+                &names::assigner(),
+                Message::CameraUpdate(CameraUpdate {
+                    seq: k,
+                    camera: camera(k),
+                }),
+            )
+            .await
+            .unwrap();
+    }
+
+    async fn frame_done(&mut self) -> FrameDone {
+        let got = tokio::time::timeout(Duration::from_secs(600), self.display.recv_message())
+            .await
+            .expect("a frame completes");
+        match got {
+            Some((_, Message::FrameDone(d))) => d,
+            other => panic!("display got {other:?}"),
+        }
+    }
+
+    /// Runs frames `0..n`, each camera update sent after the previous frame
+    /// is done (a display waiting for each frame).
+    async fn run_sequential(&mut self, n: u64) -> Vec<FrameDone> {
+        let mut done = Vec::new();
+        for k in 0..n {
+            self.camera(k).await;
+            let d = self.frame_done().await;
+            assert_eq!(d.frame, k);
+            done.push(d);
+        }
+        done
+    }
+
+    async fn stop(self) -> SchedulerSummary {
+        let bye = || {
+            Message::Shutdown(Shutdown {
+                reason: "test over".into(),
+            })
+        };
+        self.display.send(&names::assigner(), bye()).await.unwrap();
+        self.display.send(&names::scheduler(), bye()).await.unwrap();
+        self.assigner.await.unwrap();
+        let s = self.scheduler.await.unwrap();
+        for (_, task) in self.clients {
+            task.abort();
+        }
+        s
+    }
+
+    fn events(&self) -> Vec<Event> {
+        self.log.lock().unwrap().clone()
+    }
+
+    /// Per frame, per tile index, the clients it was assigned to.
+    fn assignments(&self, frame: u64) -> HashMap<usize, Vec<usize>> {
+        let grid = TileGrid::new(W, H, 32);
+        self.assignments_in(frame, &grid)
+    }
+
+    fn assignments_in(&self, frame: u64, grid: &TileGrid) -> HashMap<usize, Vec<usize>> {
+        let mut m: HashMap<usize, Vec<usize>> = HashMap::new();
+        for e in self.events() {
+            if let Event::Assigned {
+                frame: f,
+                tile,
+                client,
+            } = e
+            {
+                if f == frame {
+                    m.entry(grid.index_of(&tile).expect("a grid tile"))
+                        .or_default()
+                        .push(client);
+                }
+            }
+        }
+        m
+    }
+}
+
+#[tokio::test(start_paused = true)]
+async fn scheduler_assigns_every_tile_once_and_double_buffers() {
+    let mut c = cluster(
+        options(true, Duration::from_secs(60)),
+        W,
+        H,
+        &[Behaviour::normal(), Behaviour::normal()],
+    );
+    // All cameras up front: the assigner paces the frames.
+    let frames = 5u64;
+    for k in 0..frames {
+        c.camera(k).await;
+    }
+    let grid = TileGrid::new(W, H, 32);
+    let n = grid.count() as u32;
+    for k in 0..frames {
+        let d = c.frame_done().await;
+        assert_eq!(d.frame, k, "frames complete in order here");
+        let s = &d.stats;
+        assert_eq!(s.tiles, n);
+        assert_eq!(s.reassigned, 0);
+        assert_eq!(s.rays, u64::from(W * H));
+        assert_eq!(s.misses, u64::from(n));
+        assert_eq!(s.bytes_fetched, 10 * u64::from(n));
+        assert_eq!(s.voxels_touched, 2 * u64::from(n));
+        assert_eq!(s.stall_us, 5 * u64::from(n));
+        assert!(s.time_us > 0);
+        let per: Vec<_> = s.clients.as_slice().to_vec();
+        assert_eq!(per.iter().map(|c| c.tiles).sum::<u32>(), n);
+        assert_eq!(per.iter().map(|c| c.rays).sum::<u64>(), u64::from(W * H));
+        assert_eq!(per.len(), 2, "both clients rendered: {per:?}");
+        // Every tile once, to exactly one client.
+        let a = c.assignments(k);
+        assert_eq!(a.len(), grid.count());
+        assert!(a.values().all(|v| v.len() == 1), "frame {k}: {a:?}");
+    }
+    // The prefetcher got every camera update and every frame's owners.
+    let mut cams = Vec::new();
+    let mut owners: Vec<TileOwners> = Vec::new();
+    while let Some(d) = c.prefetcher.try_recv() {
+        if let dray_runtime::Delivery::Message { msg, .. } = d {
+            match msg {
+                Message::CameraUpdate(u) => cams.push(u.seq),
+                Message::TileOwners(o) => owners.push(o),
+                _ => {}
+            }
+        }
+    }
+    assert_eq!(cams, (0..frames).collect::<Vec<_>>());
+    assert_eq!(owners.len() as u64, frames);
+    for o in &owners {
+        assert_eq!((o.width, o.height, o.tile_size), (W, H, 32));
+        assert_eq!(o.owners.0.len(), grid.count());
+        assert!(o
+            .owners
+            .0
+            .iter()
+            .all(|&i| (i as usize) < o.clients.as_slice().len()));
+    }
+    // Double buffering: frame k+1's first tile goes out before frame k's
+    // last report, and only once frame k is fully assigned.
+    let ev = c.events();
+    for k in 0..frames - 1 {
+        let first_next = ev
+            .iter()
+            .position(|e| matches!(e, Event::Assigned { frame, .. } if *frame == k + 1))
+            .unwrap();
+        let last_report = ev
+            .iter()
+            .rposition(|e| matches!(e, Event::Reported { frame, .. } if *frame == k))
+            .unwrap();
+        let last_assign = ev
+            .iter()
+            .rposition(|e| matches!(e, Event::Assigned { frame, .. } if *frame == k))
+            .unwrap();
+        assert!(
+            first_next < last_report,
+            "frame {} started only after frame {k} was done",
+            k + 1
+        );
+        assert!(
+            last_assign < first_next,
+            "frame {} started before frame {k} was fully assigned",
+            k + 1
+        );
+    }
+    // Nothing more arrives: one FrameDone per frame.
+    tokio::time::sleep(Duration::from_secs(5)).await;
+    assert!(c.display.try_recv().is_none());
+    let s = c.stop().await;
+    assert_eq!(s.frames, frames);
+    assert_eq!(s.tiles, frames * u64::from(n));
+    assert_eq!(s.reassigned, 0);
+}
+
+/// Share of the tiles of frame `b` that went to the client that had them in
+/// frame `a`.
+fn overlap(c: &Cluster, grid: &TileGrid, a: u64, b: u64) -> f64 {
+    let (fa, fb) = (c.assignments_in(a, grid), c.assignments_in(b, grid));
+    let same = (0..grid.count())
+        .filter(|i| fa.get(i).map(|v| v[0]) == fb.get(i).map(|v| v[0]))
+        .count();
+    same as f64 / grid.count() as f64
+}
+
+async fn affinity_overlap(affinity: bool) -> (f64, f64) {
+    let (w, h) = (256, 256);
+    let mut c = cluster(
+        options(affinity, Duration::from_secs(60)),
+        w,
+        h,
+        &[Behaviour::normal(), Behaviour::normal()],
+    );
+    let grid = TileGrid::new(w, h, 32);
+    c.run_sequential(4).await;
+    let r = (overlap(&c, &grid, 1, 2), overlap(&c, &grid, 2, 3));
+    // Both clients did a fair share.
+    let f2 = c.assignments_in(2, &grid);
+    let first = f2.values().filter(|v| v[0] == 0).count();
+    assert!(
+        (16..=48).contains(&first),
+        "client 0 got {first} of 64 tiles"
+    );
+    c.stop().await;
+    r
+}
+
+#[tokio::test(start_paused = true)]
+async fn scheduler_affinity_keeps_tiles_with_their_client() {
+    let (a12, a23) = affinity_overlap(true).await;
+    assert!(a12 >= 0.9 && a23 >= 0.9, "affinity: {a12} {a23}");
+    let (r12, r23) = affinity_overlap(false).await;
+    assert!(
+        (0.25..=0.75).contains(&r12) && (0.25..=0.75).contains(&r23),
+        "random: {r12} {r23}"
+    );
+}
+
+fn costly(t: &TileRect) -> u64 {
+    // Tile (48, 16) of a 64×64 image in 16-pixel tiles (index 7) is by far
+    // the costliest; the others vary.
+    if (t.x, t.y) == (48, 16) {
+        1_000_000
+    } else {
+        u64::from((t.x * 31 + t.y * 17) % 97) + 10
+    }
+}
+
+#[tokio::test(start_paused = true)]
+async fn scheduler_hands_out_the_costliest_tile_first() {
+    let one = Behaviour {
+        slots: 1,
+        cost: costly,
+        ..Behaviour::normal()
+    };
+    let opts = SchedulerOptions {
+        tile_size: 16,
+        ..options(true, Duration::from_secs(60))
+    };
+    let mut c = cluster(opts, 64, 64, &[one]);
+    c.run_sequential(2).await;
+    let order = |frame: u64| -> Vec<TileRect> {
+        c.events()
+            .into_iter()
+            .filter_map(|e| match e {
+                Event::Assigned { frame: f, tile, .. } if f == frame => Some(tile),
+                _ => None,
+            })
+            .collect()
+    };
+    let grid = TileGrid::new(64, 64, 16);
+    // No history: row-major.
+    let f0: Vec<usize> = order(0).iter().map(|t| grid.index_of(t).unwrap()).collect();
+    assert_eq!(f0, (0..16).collect::<Vec<_>>());
+    // Then by the last frame's cost, costliest first.
+    let f1 = order(1);
+    assert_eq!((f1[0].x, f1[0].y), (48, 16));
+    let costs: Vec<u64> = f1.iter().map(costly).collect();
+    assert!(costs.windows(2).all(|w| w[0] >= w[1]), "{costs:?}");
+    c.stop().await;
+}
+
+#[tokio::test(start_paused = true)]
+async fn scheduler_reassigns_the_tiles_of_a_lost_client() {
+    let mute = Behaviour {
+        slots: 4,
+        silent: true,
+        ..Behaviour::normal()
+    };
+    let mut c = cluster(
+        options(true, Duration::from_secs(3600)),
+        W,
+        H,
+        &[Behaviour::normal(), mute],
+    );
+    c.camera(0).await;
+    // Wait until the mute client holds tiles, then cut it off.
+    loop {
+        let held = c
+            .events()
+            .iter()
+            .filter(|e| matches!(e, Event::Assigned { client: 1, .. }))
+            .count();
+        if held >= 4 {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(1)).await;
+    }
+    c.net.disconnect(&name("scheduler"), &names::client_node(1));
+    let d = c.frame_done().await;
+    let n = TileGrid::new(W, H, 32).count() as u32;
+    assert_eq!(d.stats.tiles, n);
+    assert_eq!(d.stats.reassigned, 4);
+    let per = d.stats.clients.as_slice();
+    assert_eq!(per.len(), 1);
+    assert_eq!((per[0].node.as_str(), per[0].tiles), ("client-0", n));
+    // The next frame goes to the survivor alone.
+    c.camera(1).await;
+    let d = c.frame_done().await;
+    assert_eq!((d.frame, d.stats.reassigned), (1, 0));
+    let s = c.stop().await;
+    assert_eq!((s.frames, s.reassigned), (2, 4));
+}
+
+#[tokio::test(start_paused = true)]
+async fn scheduler_reassigns_after_the_deadline_and_ignores_late_reports() {
+    // Client 1 is connected but takes 10 s per tile; the deadline is 200 ms.
+    let slow = Behaviour {
+        slots: 2,
+        render: Duration::from_secs(10),
+        ..Behaviour::normal()
+    };
+    let mut c = cluster(
+        options(true, Duration::from_millis(200)),
+        W,
+        H,
+        &[Behaviour::normal(), slow],
+    );
+    let started = tokio::time::Instant::now();
+    c.camera(0).await;
+    let d = c.frame_done().await;
+    let n = TileGrid::new(W, H, 32).count() as u32;
+    assert_eq!(d.stats.tiles, n);
+    assert_eq!(d.stats.reassigned, 2, "the slow client's two tiles");
+    assert!(d.stats.time_us >= 200_000, "{}", d.stats.time_us);
+    assert!(started.elapsed() < Duration::from_secs(5));
+    let per = d.stats.clients.as_slice();
+    assert_eq!((per.len(), per[0].tiles), (1, n));
+    // The slow client's reports come in long after: ignored, no second
+    // FrameDone, and the next frame still completes.
+    tokio::time::sleep(Duration::from_secs(30)).await;
+    assert!(c.display.try_recv().is_none());
+    c.camera(1).await;
+    let d = c.frame_done().await;
+    assert_eq!(d.frame, 1);
+    assert_eq!(d.stats.tiles, n);
+    let tiles: u32 = d.stats.clients.as_slice().iter().map(|c| c.tiles).sum();
+    assert_eq!(tiles, n);
+    c.stop().await;
+}
+
+async fn next(mb: &mut Mailbox) -> Option<Message> {
+    tokio::time::timeout(Duration::from_secs(1), mb.recv_message())
+        .await
+        .ok()
+        .flatten()
+        .map(|(_, m)| m)
+}
+
+/// The assigner alone: the test plays the scheduler and the prefetcher.
+#[tokio::test(start_paused = true)]
+async fn assigner_releases_one_frame_at_a_time_and_drops_the_oldest() {
+    let net = InProcNet::new();
+    let bus = net.add_node(name("scheduler"), Role::Scheduler).unwrap();
+    let amb = bus.mailbox(name(names::ASSIGNER), 1024).unwrap();
+    let mut sched = bus.mailbox(name(names::SCHEDULER), 1024).unwrap();
+    let mut pre = bus.mailbox(name(names::PREFETCHER), 1024).unwrap();
+    let dbus = net.add_node(name("display"), Role::Display).unwrap();
+    let display = dbus.mailbox(name(names::DISPLAY), 1024).unwrap();
+    let task = tokio::spawn(run_assigner(
+        amb,
+        AssignerOptions {
+            scheduler: names::scheduler(),
+            prefetcher: Some(names::prefetcher()),
+            width: 64,
+            height: 48,
+            settings: settings(),
+        },
+    ));
+    let update = |seq: u64| {
+        Message::CameraUpdate(CameraUpdate {
+            seq,
+            camera: camera(seq),
+        })
+    };
+    for seq in [0, 1, 1, 0, 2] {
+        display.send(&names::assigner(), update(seq)).await.unwrap();
+    }
+    let start = |m: Option<Message>| match m {
+        Some(Message::FrameStart(f)) => f,
+        other => panic!("expected a frame start, got {other:?}"),
+    };
+    let f0 = start(next(&mut sched).await);
+    assert_eq!((f0.frame, f0.width, f0.height), (0, 64, 48));
+    assert_eq!(f0.camera, camera(0));
+    // Nothing more until frame 0 is assigned.
+    assert!(next(&mut sched).await.is_none());
+    let assigned = |frame| Message::FrameAssigned(FrameAssigned { frame });
+    // A FrameAssigned for another frame changes nothing.
+    sched.send(&names::assigner(), assigned(5)).await.unwrap();
+    assert!(next(&mut sched).await.is_none());
+    sched.send(&names::assigner(), assigned(0)).await.unwrap();
+    assert_eq!(start(next(&mut sched).await).frame, 1);
+    sched.send(&names::assigner(), assigned(1)).await.unwrap();
+    assert_eq!(start(next(&mut sched).await).frame, 2);
+    // The prefetcher saw each new update once.
+    let mut seen = Vec::new();
+    while let Some(Message::CameraUpdate(u)) = next(&mut pre).await {
+        seen.push(u.seq);
+    }
+    assert_eq!(seen, vec![0, 1, 2]);
+    // A burst while frame 2 is being assigned: only the newest 64 wait.
+    let burst = 3..3 + MAX_QUEUED_FRAMES as u64 + 10;
+    for seq in burst.clone() {
+        display.send(&names::assigner(), update(seq)).await.unwrap();
+    }
+    let mut released = Vec::new();
+    let mut last = 2;
+    loop {
+        sched
+            .send(&names::assigner(), assigned(last))
+            .await
+            .unwrap();
+        match next(&mut sched).await {
+            Some(Message::FrameStart(f)) => {
+                released.push(f.frame);
+                last = f.frame;
+            }
+            None => break,
+            Some(other) => panic!("{other:?}"),
+        }
+    }
+    let want: Vec<u64> = (burst.end - MAX_QUEUED_FRAMES as u64..burst.end).collect();
+    assert_eq!(released, want);
+    display
+        .send(
+            &names::assigner(),
+            Message::Shutdown(Shutdown {
+                reason: "done".into(),
+            }),
+        )
+        .await
+        .unwrap();
+    task.await.unwrap().unwrap();
+}
+
+#[tokio::test(start_paused = true)]
+async fn scheduler_affinity_holds_with_double_buffering() {
+    // Cameras all sent at once: frame k+1 is handed out while frame k
+    // renders, by the owners of the last frame done.
+    let (w, h) = (256, 256);
+    let mut c = cluster(
+        options(true, Duration::from_secs(60)),
+        w,
+        h,
+        &[Behaviour::normal(), Behaviour::normal()],
+    );
+    for k in 0..6 {
+        c.camera(k).await;
+    }
+    for _ in 0..6 {
+        c.frame_done().await;
+    }
+    let grid = TileGrid::new(w, h, 32);
+    for k in 2..5 {
+        let o = overlap(&c, &grid, k, k + 1);
+        assert!(o >= 0.9, "frames {k} and {}: {o}", k + 1);
+    }
+    c.stop().await;
+}
