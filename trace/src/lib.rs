@@ -5,10 +5,12 @@
 //!   [`scene::VoxelSource`] the kernel asks for voxels.
 //! - [`packet`]: SIMD ray packets and the suspendable two-level traversal.
 //! - [`render`]: frames in tiles on threads, shadows, shading.
+//! - [`tile`]: one tile, fully shaded, while voxels arrive over time.
 //! - [`image`]: PNG, and the depth/primitive-id comparison formats.
 
 pub mod camera;
 pub mod image;
+mod job;
 pub mod packet;
 pub mod render;
 pub mod scene;

@@ -8,8 +8,11 @@
 #![allow(clippy::needless_range_loop)]
 
 use crate::camera::{Camera, CameraBasis};
-use crate::packet::{Packet, Step, Traversal};
+use crate::job::{Ctx, PacketJob, Region};
+pub use crate::job::depth_grey;
+use crate::packet::Step;
 use crate::scene::{TopLevel, VoxelSource};
+use crate::tile::Rect;
 use glam::Vec3;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Mutex;
@@ -18,10 +21,10 @@ use std::time::Instant;
 /// Tile edge in pixels (the unit of work a thread takes).
 pub const TILE: u32 = 32;
 /// Ambient share of the light.
-const AMBIENT: f32 = 0.25;
+pub(crate) const AMBIENT: f32 = 0.25;
 /// Shadow rays start this fraction of the scene diagonal away from the hit
 /// (the same rule as the Embree yardstick).
-const SHADOW_EPS: f32 = 1e-4;
+pub(crate) const SHADOW_EPS: f32 = 1e-4;
 
 /// The instruction set the kernel runs with.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -136,9 +139,25 @@ pub struct Frame {
     pub depth: Vec<f32>,
     /// ORIGINAL triangle id per pixel, `u32::MAX` on a miss.
     pub primid: Vec<u32>,
-    /// Shaded color (empty unless shading was asked for).
+    /// Shaded color (empty unless shading was asked for; see
+    /// [`Frame::fill_grey`] for the unshaded colors).
     pub rgba: Vec<[u8; 4]>,
     pub stats: FrameStats,
+}
+
+impl Frame {
+    /// Where the frame was not shaded (`rgba` empty), fills `rgba` with
+    /// each pixel's [`depth_grey`]: exactly what
+    /// [`crate::tile::render_tile`] writes without shading.
+    pub fn fill_grey(&mut self, scene_diagonal: f32) {
+        if self.rgba.is_empty() {
+            self.rgba = self
+                .depth
+                .iter()
+                .map(|&t| depth_grey(t, scene_diagonal))
+                .collect();
+        }
+    }
 }
 
 #[derive(Clone, Copy, Debug, Default)]
@@ -159,7 +178,6 @@ struct Shared<'a> {
     source: &'a dyn VoxelSource,
     basis: CameraBasis,
     settings: RenderSettings,
-    light: Vec3,
     width: u32,
     height: u32,
 }
@@ -197,7 +215,6 @@ pub fn render(
         source,
         basis: camera.basis(),
         settings: settings.clone(),
-        light: settings.light.normalize_or(Vec3::Y),
         width: w,
         height: h,
     };
@@ -293,7 +310,9 @@ unsafe fn tile_avx2(shared: &Shared, x0: u32, y0: u32) -> Result<TileOut, u32> {
     tile::<8, 4>(shared, x0, y0)
 }
 
-/// One tile in packets of N rays from BW-pixel-wide blocks.
+/// One tile in packets of N rays from BW-pixel-wide blocks, each run
+/// through the same resumable [`PacketJob`] as [`crate::tile::render_tile`]'s
+/// (here every voxel is resident, so a job never stops before it is done).
 #[inline(always)]
 fn tile<const N: usize, const BW: u32>(shared: &Shared, x0: u32, y0: u32) -> Result<TileOut, u32> {
     let bh = N as u32 / BW;
@@ -314,60 +333,33 @@ fn tile<const N: usize, const BW: u32>(shared: &Shared, x0: u32, y0: u32) -> Res
         },
         stats: FrameStats::default(),
     };
-    let mut trav = Traversal::<N>::default();
-    let eye = [shared.basis.eye; N];
+    let ctx = Ctx::new(shared.top, shared.basis, settings, false);
+    let rect = Rect {
+        x0,
+        y0,
+        width: w,
+        height: h,
+    };
+    let mut region = Region {
+        width: w,
+        depth: &mut out.depth,
+        primid: &mut out.primid,
+        rgba: &mut out.rgba,
+    };
+    let mut job = PacketJob::<N, BW>::new(&ctx, rect, 0, 0);
+    let mut first = true;
     for by in (0..h).step_by(bh as usize) {
         for bx in (0..w).step_by(BW as usize) {
-            // Lanes past the tile's edge repeat its last pixel; their
-            // results are dropped.
-            let mut px = [(0u32, 0u32); N];
-            let mut dirs = [Vec3::ZERO; N];
-            for (i, p) in px.iter_mut().enumerate() {
-                let x = (bx + i as u32 % BW).min(w - 1);
-                let y = (by + i as u32 / BW).min(h - 1);
-                *p = (x, y);
-                dirs[i] = shared.basis.direction(x0 + x, y0 + y);
+            if !first {
+                job.start(&ctx, rect, bx, by);
             }
-            let mut packet = Packet::<N>::new(&eye, &dirs, 0.0, f32::INFINITY);
-            trav.reset();
-            if let Step::Missing(id) = trav.run(&mut packet, shared.top, shared.source) {
+            first = false;
+            if let Step::Missing(id) = job.step(&ctx, shared.source, &mut region, &mut out.stats) {
                 return Err(id);
-            }
-            out.stats.voxels_visited += trav.voxels_visited as u64;
-            let mut own = [false; N];
-            for (i, &(x, y)) in px.iter().enumerate() {
-                own[i] = is_own_lane::<BW>(i, x, y, bx, by);
-                if !own[i] {
-                    continue;
-                }
-                let k = (y * w + x) as usize;
-                out.stats.primary_rays += 1;
-                if packet.hit(i) {
-                    out.depth[k] = packet.t[i];
-                    out.primid[k] = packet.id[i];
-                    out.stats.hits += 1;
-                }
-            }
-            if !settings.shade {
-                continue;
-            }
-            let colors = shade_bounces(shared, &mut trav, packet, &dirs, &own, &mut out.stats)?;
-            for (i, &(x, y)) in px.iter().enumerate() {
-                if own[i] {
-                    let c = |v: f32| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8;
-                    out.rgba[(y * w + x) as usize] =
-                        [c(colors[i].x), c(colors[i].y), c(colors[i].z), 255];
-                }
             }
         }
     }
     Ok(out)
-}
-
-/// Whether lane `i` is the pixel it traced (not a repeat past the edge).
-#[inline(always)]
-fn is_own_lane<const BW: u32>(i: usize, x: u32, y: u32, bx: u32, by: u32) -> bool {
-    x == bx + i as u32 % BW && y == by + i as u32 / BW
 }
 
 /// Which surfaces are mirrors (models carry no materials).
@@ -382,7 +374,7 @@ pub enum ReflectRule {
 }
 
 impl ReflectRule {
-    fn matches(&self, id: u32, color: Vec3) -> bool {
+    pub(crate) fn matches(&self, id: u32, color: Vec3) -> bool {
         match self {
             ReflectRule::All => true,
             ReflectRule::Ids(r) => r.contains(&id),
@@ -395,7 +387,7 @@ impl ReflectRule {
 }
 
 /// A color per voxel (the paper's Figure 5).
-fn voxel_color(id: u32) -> Vec3 {
+pub(crate) fn voxel_color(id: u32) -> Vec3 {
     let h = (id.wrapping_mul(0x9E37_79B9) >> 8) as f32 / (1 << 24) as f32;
     let k = |n: f32| {
         let x = (n + h * 6.0) % 6.0;
@@ -404,131 +396,7 @@ fn voxel_color(id: u32) -> Vec3 {
     Vec3::new(k(5.0), k(3.0), k(1.0))
 }
 
-const BACKGROUND: Vec3 = Vec3::new(0.094, 0.11, 0.14);
-
-/// Colors of a packet's pixels: Lambert shading with the interpolated
-/// vertex normal and color, an ambient term, hard shadows, and mirror
-/// bounces up to `reflections` deep, each traced as a packet. Inlined into
-/// the ISA-specific tile functions so its packets get their SIMD code too.
-#[inline(always)]
-fn shade_bounces<const N: usize>(
-    shared: &Shared,
-    trav: &mut Traversal<N>,
-    primary: Packet<N>,
-    dirs: &[Vec3; N],
-    own: &[bool; N],
-    stats: &mut FrameStats,
-) -> Result<[Vec3; N], u32> {
-    let s = &shared.settings;
-    let eps = SHADOW_EPS * s.scene_diagonal;
-    let mut color = [Vec3::ZERO; N];
-    let mut weight = [1.0f32; N];
-    let mut cur = primary;
-    let mut cur_dirs = *dirs;
-    let mut origins = [shared.basis.eye; N];
-    let mut last: Option<std::sync::Arc<crate::scene::PreparedVoxel>> = None;
-    for bounce in 0..=s.reflections {
-        let mut points = [Vec3::ZERO; N];
-        let mut normals = [Vec3::Y; N];
-        let mut albedo = [Vec3::ZERO; N];
-        let mut mirror = [0.0f32; N];
-        for i in 0..N {
-            if weight[i] == 0.0 {
-                continue;
-            }
-            if !cur.hit(i) {
-                color[i] += BACKGROUND * weight[i];
-                weight[i] = 0.0;
-                continue;
-            }
-            // Neighbouring lanes mostly hit the same voxel: fetch it once.
-            if last.as_ref().is_none_or(|v| v.id != cur.voxel[i]) {
-                last = Some(shared.source.voxel(cur.voxel[i]).ok_or(cur.voxel[i])?);
-            }
-            let vox = last.as_ref().expect("just set");
-            let (mut n, c) = vox.surface(cur.tri[i], cur.u[i], cur.v[i]);
-            let c = Vec3::from_array(c);
-            if n.dot(cur_dirs[i]) > 0.0 {
-                n = -n;
-            }
-            points[i] = origins[i] + cur_dirs[i] * cur.t[i];
-            normals[i] = n;
-            albedo[i] = if s.voxel_colors {
-                voxel_color(cur.voxel[i])
-            } else {
-                c
-            };
-            if bounce < s.reflections && s.reflective.matches(cur.id[i], c) {
-                mirror[i] = s.reflectance;
-            }
-        }
-        let mut lit = [true; N];
-        if s.shadows {
-            let started = Instant::now();
-            let mut shadow = Packet::<N>::new(&points, &[shared.light; N], eps, f32::INFINITY);
-            shadow.any_hit = true;
-            for i in 0..N {
-                // Lanes without a surface to light take no part.
-                if weight[i] == 0.0 {
-                    shadow.t[i] = f32::NEG_INFINITY;
-                }
-            }
-            trav.reset();
-            if let Step::Missing(id) = trav.run(&mut shadow, shared.top, shared.source) {
-                return Err(id);
-            }
-            for i in 0..N {
-                if weight[i] > 0.0 {
-                    lit[i] = !shadow.occluded(i);
-                    if own[i] {
-                        stats.shadow_rays += 1;
-                        stats.occluded += !lit[i] as u64;
-                    }
-                }
-            }
-            stats.shadow_seconds += started.elapsed().as_secs_f64();
-        }
-        let mut any_mirror = false;
-        for i in 0..N {
-            if weight[i] == 0.0 {
-                continue;
-            }
-            let diffuse = if lit[i] {
-                normals[i].dot(shared.light).max(0.0)
-            } else {
-                0.0
-            };
-            let local = albedo[i] * (AMBIENT + (1.0 - AMBIENT) * diffuse);
-            color[i] += local * (weight[i] * (1.0 - mirror[i]));
-            weight[i] *= mirror[i];
-            any_mirror |= weight[i] > 0.0;
-        }
-        if !any_mirror {
-            break;
-        }
-        let mut reflected = [Vec3::Y; N];
-        for i in 0..N {
-            let d = cur_dirs[i];
-            reflected[i] = (d - normals[i] * (2.0 * d.dot(normals[i]))).normalize_or(normals[i]);
-        }
-        let mut next = Packet::<N>::new(&points, &reflected, eps, f32::INFINITY);
-        for i in 0..N {
-            if weight[i] == 0.0 {
-                next.t[i] = f32::NEG_INFINITY;
-            } else if own[i] {
-                stats.reflection_rays += 1;
-            }
-        }
-        trav.reset();
-        if let Step::Missing(id) = trav.run(&mut next, shared.top, shared.source) {
-            return Err(id);
-        }
-        cur = next;
-        cur_dirs = reflected;
-        origins = points;
-    }
-    Ok(color)
-}
+pub(crate) const BACKGROUND: Vec3 = Vec3::new(0.094, 0.11, 0.14);
 
 /// Renders once untimed (warm-up), then `repeat` timed passes; returns the
 /// last frame and each timed pass's seconds.

@@ -1,16 +1,20 @@
-//! One tile's primary rays with voxels that arrive over time: the packets
+//! One tile, fully shaded, with voxels that arrive over time: the packets
 //! that meet a missing voxel wait (suspend mode) while the others go on,
 //! or the whole tile waits for each miss in turn (block mode, the
-//! demand-paging baseline the paper compares against).
+//! demand-paging baseline the paper compares against). Each packet runs
+//! the same resumable [`PacketJob`] as [`crate::render::render`], so the
+//! pixels are the frame's, bit for bit.
 
-use crate::camera::CameraBasis;
-use crate::packet::{Packet, Step, Traversal};
-use crate::render::Isa;
-use crate::scene::{TopLevel, VoxelSource};
+use crate::camera::Camera;
+use crate::job::{Ctx, PacketJob, Region};
+use crate::packet::Step;
+use crate::render::{FrameStats, Isa, RenderSettings};
+use crate::scene::{PreparedVoxel, TopLevel, VoxelSource};
 use futures::future::BoxFuture;
 use futures::stream::{FuturesUnordered, StreamExt};
-use glam::Vec3;
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
 
 /// What a render thread does when a packet needs a voxel that is not
 /// resident.
@@ -31,8 +35,10 @@ pub struct LoadError {
 
 /// A voxel source that can be asked to make a voxel resident.
 pub trait VoxelLoader: VoxelSource {
-    /// Resolves once voxel `id` is resident (it may already be).
-    fn load(&self, id: u32) -> BoxFuture<'_, Result<(), LoadError>>;
+    /// Resolves with voxel `id` once it is resident. The Arc returned is
+    /// held by the packets that waited for it until they finish, so a
+    /// cache cannot free it under them.
+    fn load(&self, id: u32) -> BoxFuture<'_, Result<Arc<PreparedVoxel>, LoadError>>;
 }
 
 /// A rectangle of the image.
@@ -44,174 +50,275 @@ pub struct Rect {
     pub height: u32,
 }
 
-/// A tile's primary hits, rows top to bottom.
-#[derive(Clone, Debug, PartialEq)]
-pub struct TileHits {
-    pub rect: Rect,
-    pub depth: Vec<f32>,
-    pub primid: Vec<u32>,
-    pub rays: u64,
+/// What a tile cost.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct TileStats {
+    pub primary_rays: u64,
+    pub shadow_rays: u64,
+    pub reflection_rays: u64,
     /// Times a packet met a missing voxel.
     pub misses: u64,
-    /// Distinct voxels requested.
+    /// Load requests made (one per voxel at a time, whatever the number of
+    /// packets waiting for it).
     pub requested: u64,
+    /// Distinct voxels the tile's rays entered.
+    pub voxels_touched: u32,
+    /// Time spent waiting for loads while no packet of the tile could run.
+    pub stall: Duration,
 }
 
-/// Traces the primary rays of `rect`, loading voxels through `loader`.
-pub async fn trace_tile(
+/// A rendered tile, rows top to bottom.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TileImage {
+    pub rect: Rect,
+    /// Shaded colors, or without shading each pixel's
+    /// [`crate::render::depth_grey`].
+    pub rgba: Vec<[u8; 4]>,
+    /// Distance to the nearest hit, +inf on a miss.
+    pub depth: Vec<f32>,
+    /// ORIGINAL triangle id, `u32::MAX` on a miss.
+    pub primid: Vec<u32>,
+    pub stats: TileStats,
+}
+
+/// Renders `rect` of `camera`'s image with `settings` (its `threads` is
+/// ignored: the tile runs on the caller's task), loading voxels through
+/// `loader`. Every pixel is bit-identical to what
+/// [`crate::render::render`] gives it, whatever the rect and whatever the
+/// order and timing in which voxels arrive. A rect not inside the image
+/// (or empty) is an error naming voxel `u32::MAX`.
+pub async fn render_tile(
     top: &TopLevel,
     loader: &dyn VoxelLoader,
-    basis: &CameraBasis,
+    camera: &Camera,
     rect: Rect,
+    settings: &RenderSettings,
     mode: MissMode,
-    isa: Isa,
-) -> Result<TileHits, LoadError> {
+) -> Result<TileImage, LoadError> {
+    let inside = rect.width > 0
+        && rect.height > 0
+        && rect.x0.checked_add(rect.width).is_some_and(|x| x <= camera.width)
+        && rect.y0.checked_add(rect.height).is_some_and(|y| y <= camera.height);
+    if !inside {
+        return Err(LoadError {
+            voxel: u32::MAX,
+            message: format!(
+                "tile {rect:?} is not inside the {}x{} image",
+                camera.width, camera.height
+            ),
+        });
+    }
     // A kernel the CPU cannot run would be undefined behaviour.
-    let isa = if isa.supported() { isa } else { Isa::Portable };
+    let isa = if settings.isa.supported() {
+        settings.isa
+    } else {
+        Isa::Portable
+    };
+    let ctx = Ctx::new(top, camera.basis(), settings, true);
     match isa {
         #[cfg(target_arch = "x86_64")]
-        Isa::Avx512 => drive::<16, 4>(top, loader, basis, rect, mode, run_avx512).await,
+        Isa::Avx512 => drive::<16, 4>(&ctx, loader, rect, mode, step_avx512).await,
         #[cfg(target_arch = "x86_64")]
-        Isa::Avx2 => drive::<8, 4>(top, loader, basis, rect, mode, run_avx2).await,
-        _ => drive::<8, 4>(top, loader, basis, rect, mode, run_portable).await,
+        Isa::Avx2 => drive::<8, 4>(&ctx, loader, rect, mode, step_avx2).await,
+        _ => drive::<8, 4>(&ctx, loader, rect, mode, step_portable).await,
     }
 }
 
-type Runner<const N: usize> =
-    fn(&mut Traversal<N>, &mut Packet<N>, &TopLevel, &dyn VoxelSource) -> Step;
+type Stepper<const N: usize> =
+    fn(&mut PacketJob<N, 4>, &Ctx, &dyn VoxelSource, &mut Region, &mut FrameStats) -> Step;
 
-fn run_portable(
-    t: &mut Traversal<8>,
-    p: &mut Packet<8>,
-    top: &TopLevel,
+fn step_portable(
+    j: &mut PacketJob<8, 4>,
+    c: &Ctx,
     s: &dyn VoxelSource,
+    r: &mut Region,
+    st: &mut FrameStats,
 ) -> Step {
-    t.run(p, top, s)
+    j.step(c, s, r, st)
 }
 
 #[cfg(target_arch = "x86_64")]
-fn run_avx2(t: &mut Traversal<8>, p: &mut Packet<8>, top: &TopLevel, s: &dyn VoxelSource) -> Step {
+fn step_avx2(
+    j: &mut PacketJob<8, 4>,
+    c: &Ctx,
+    s: &dyn VoxelSource,
+    r: &mut Region,
+    st: &mut FrameStats,
+) -> Step {
     #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
     unsafe fn inner(
-        t: &mut Traversal<8>,
-        p: &mut Packet<8>,
-        top: &TopLevel,
+        j: &mut PacketJob<8, 4>,
+        c: &Ctx,
         s: &dyn VoxelSource,
+        r: &mut Region,
+        st: &mut FrameStats,
     ) -> Step {
-        t.run(p, top, s)
+        j.step(c, s, r, st)
     }
-    // SAFETY: `trace_tile` picks this only where `Isa::supported` says the
-    // CPU has AVX2.
-    unsafe { inner(t, p, top, s) }
+    // SAFETY: `render_tile` picks this only where `Isa::supported` says
+    // the CPU has AVX2.
+    unsafe { inner(j, c, s, r, st) }
 }
 
 #[cfg(target_arch = "x86_64")]
-fn run_avx512(
-    t: &mut Traversal<16>,
-    p: &mut Packet<16>,
-    top: &TopLevel,
+fn step_avx512(
+    j: &mut PacketJob<16, 4>,
+    c: &Ctx,
     s: &dyn VoxelSource,
+    r: &mut Region,
+    st: &mut FrameStats,
 ) -> Step {
     #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
     unsafe fn inner(
-        t: &mut Traversal<16>,
-        p: &mut Packet<16>,
-        top: &TopLevel,
+        j: &mut PacketJob<16, 4>,
+        c: &Ctx,
         s: &dyn VoxelSource,
+        r: &mut Region,
+        st: &mut FrameStats,
     ) -> Step {
-        t.run(p, top, s)
+        j.step(c, s, r, st)
     }
-    // SAFETY: `trace_tile` picks this only where `Isa::supported` says the
-    // CPU has AVX-512.
-    unsafe { inner(t, p, top, s) }
+    // SAFETY: `render_tile` picks this only where `Isa::supported` says
+    // the CPU has AVX-512.
+    unsafe { inner(j, c, s, r, st) }
 }
 
+/// A packet and the voxels it waited for.
 struct Job<const N: usize> {
-    trav: Traversal<N>,
-    packet: Packet<N>,
-    /// Tile-local pixel of each lane; `None` for lanes past the edge.
-    pixels: [Option<(u32, u32)>; N],
+    job: PacketJob<N, 4>,
+    /// What `load` returned for this packet: looked up before the loader,
+    /// so a voxel the cache evicted meanwhile is still found, and dropped
+    /// when the packet is done.
+    held: Vec<Arc<PreparedVoxel>>,
+}
+
+/// The loader as one job sees it: its held voxels first; records every
+/// voxel asked for.
+struct JobSource<'a> {
+    held: &'a [Arc<PreparedVoxel>],
+    loader: &'a dyn VoxelLoader,
+    touched: &'a Mutex<HashSet<u32>>,
+}
+
+impl VoxelSource for JobSource<'_> {
+    fn voxel(&self, id: u32) -> Option<Arc<PreparedVoxel>> {
+        self.touched
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .insert(id);
+        match self.held.iter().find(|v| v.id == id) {
+            Some(v) => Some(v.clone()),
+            None => self.loader.voxel(id),
+        }
+    }
 }
 
 async fn drive<const N: usize, const BW: u32>(
-    top: &TopLevel,
+    ctx: &Ctx<'_>,
     loader: &dyn VoxelLoader,
-    basis: &CameraBasis,
     rect: Rect,
     mode: MissMode,
-    run: Runner<N>,
-) -> Result<TileHits, LoadError> {
+    step: Stepper<N>,
+) -> Result<TileImage, LoadError> {
     let bh = N as u32 / BW;
     let n = (rect.width * rect.height) as usize;
-    let mut out = TileHits {
-        rect,
-        depth: vec![f32::INFINITY; n],
-        primid: vec![u32::MAX; n],
-        rays: n as u64,
-        misses: 0,
-        requested: 0,
+    let mut depth = vec![f32::INFINITY; n];
+    let mut primid = vec![u32::MAX; n];
+    let mut rgba = vec![[0, 0, 0, 255]; n];
+    let mut region = Region {
+        width: rect.width,
+        depth: &mut depth,
+        primid: &mut primid,
+        rgba: &mut rgba,
     };
-    let mut ready: Vec<Job<N>> = Vec::new();
-    for by in (0..rect.height).step_by(bh as usize) {
-        for bx in (0..rect.width).step_by(BW as usize) {
-            let mut pixels = [None; N];
-            let mut dirs = [Vec3::ZERO; N];
-            for i in 0..N {
-                let (x, y) = (bx + i as u32 % BW, by + i as u32 / BW);
-                let (cx, cy) = (x.min(rect.width - 1), y.min(rect.height - 1));
-                dirs[i] = basis.direction(rect.x0 + cx, rect.y0 + cy);
-                if x < rect.width && y < rect.height {
-                    pixels[i] = Some((x, y));
-                }
-            }
-            ready.push(Job {
-                trav: Traversal::default(),
-                packet: Packet::new(&[basis.eye; N], &dirs, 0.0, f32::INFINITY),
-                pixels,
-            });
-        }
-    }
-    // Packets waiting for each voxel, and the requests in flight.
-    let mut waiting: HashMap<u32, Vec<Job<N>>> = HashMap::new();
+    let mut stats = TileStats::default();
+    let mut fs = FrameStats::default();
+    let touched = Mutex::new(HashSet::new());
+    // The blocks not started yet, in rows.
+    let blocks_x = rect.width.div_ceil(BW);
+    let blocks = blocks_x * rect.height.div_ceil(bh);
+    let mut next_block = 0;
+    // Resumable jobs, finished ones kept for reuse, packets waiting for
+    // each voxel, and the requests in flight.
+    let mut ready: Vec<Box<Job<N>>> = Vec::new();
+    let mut spare: Vec<Box<Job<N>>> = Vec::new();
+    let mut waiting: HashMap<u32, Vec<Box<Job<N>>>> = HashMap::new();
     let mut inflight = FuturesUnordered::new();
-    let source: &dyn VoxelSource = loader;
     loop {
-        while let Some(mut job) = ready.pop() {
-            match run(&mut job.trav, &mut job.packet, top, source) {
-                Step::Done => {
-                    for (i, p) in job.pixels.iter().enumerate() {
-                        if let (Some((x, y)), true) = (p, job.packet.hit(i)) {
-                            let k = (y * rect.width + x) as usize;
-                            out.depth[k] = job.packet.t[i];
-                            out.primid[k] = job.packet.id[i];
-                        }
+        let mut job = match ready.pop() {
+            Some(job) => job,
+            None if next_block < blocks => {
+                let (bx, by) = ((next_block % blocks_x) * BW, (next_block / blocks_x) * bh);
+                next_block += 1;
+                match spare.pop() {
+                    Some(mut job) => {
+                        job.job.start(ctx, rect, bx, by);
+                        job
                     }
+                    None => Box::new(Job {
+                        job: PacketJob::new(ctx, rect, bx, by),
+                        held: Vec::new(),
+                    }),
                 }
-                Step::Missing(id) => {
-                    out.misses += 1;
-                    match mode {
-                        MissMode::Block => {
-                            out.requested += 1;
-                            loader.load(id).await?;
-                            ready.push(job);
+            }
+            None => {
+                // Nothing can run: wait for the next voxel.
+                let started = Instant::now();
+                let Some((id, result)) = inflight.next().await else {
+                    break;
+                };
+                stats.stall += started.elapsed();
+                let voxel: Arc<PreparedVoxel> = result?;
+                for mut job in waiting.remove(&id).unwrap_or_default() {
+                    job.held.push(voxel.clone());
+                    ready.push(job);
+                }
+                continue;
+            }
+        };
+        let source = JobSource {
+            held: &job.held,
+            loader,
+            touched: &touched,
+        };
+        let result = step(&mut job.job, ctx, &source, &mut region, &mut fs);
+        match result {
+            Step::Done => {
+                job.held.clear();
+                spare.push(job);
+            }
+            Step::Missing(id) => {
+                stats.misses += 1;
+                match mode {
+                    MissMode::Block => {
+                        stats.requested += 1;
+                        let started = Instant::now();
+                        let voxel = loader.load(id).await?;
+                        stats.stall += started.elapsed();
+                        job.held.push(voxel);
+                        ready.push(job);
+                    }
+                    MissMode::Suspend => {
+                        let list = waiting.entry(id).or_default();
+                        if list.is_empty() {
+                            stats.requested += 1;
+                            inflight.push(async move { (id, loader.load(id).await) });
                         }
-                        MissMode::Suspend => {
-                            let list = waiting.entry(id).or_default();
-                            if list.is_empty() {
-                                out.requested += 1;
-                                inflight.push(async move { (id, loader.load(id).await) });
-                            }
-                            list.push(job);
-                        }
+                        list.push(job);
                     }
                 }
             }
         }
-        let Some((id, result)) = inflight.next().await else {
-            break;
-        };
-        result?;
-        ready.extend(waiting.remove(&id).unwrap_or_default());
     }
-    Ok(out)
+    stats.primary_rays = fs.primary_rays;
+    stats.shadow_rays = fs.shadow_rays;
+    stats.reflection_rays = fs.reflection_rays;
+    stats.voxels_touched = touched.into_inner().unwrap_or_else(|p| p.into_inner()).len() as u32;
+    Ok(TileImage {
+        rect,
+        rgba,
+        depth,
+        primid,
+        stats,
+    })
 }

@@ -1,0 +1,389 @@
+//! One packet's whole life as a resumable state machine: primary
+//! traversal, then for each bounce the shading of its hits, the shadow
+//! packet and the reflection packet. Each stage keeps its [`Traversal`]
+//! and [`Packet`] in the job, so a [`Step::Missing`] hands control back
+//! and the next [`PacketJob::step`] resumes exactly there.
+//!
+//! [`crate::render::render`] (every voxel resident) and
+//! [`crate::tile::render_tile`] (voxels arriving over time) both run this
+//! code, which is what makes their pixels bit-identical: a lane's
+//! arithmetic never depends on the other lanes of its packet, nor on when
+//! its voxels arrived.
+
+// Lane loops index several arrays in lockstep on purpose: that is the
+// shape LLVM vectorizes.
+#![allow(clippy::needless_range_loop)]
+
+use crate::camera::CameraBasis;
+use crate::packet::{Packet, Step, Traversal};
+use crate::render::{voxel_color, FrameStats, RenderSettings, AMBIENT, BACKGROUND, SHADOW_EPS};
+use crate::scene::{PreparedVoxel, TopLevel, VoxelSource};
+use crate::tile::Rect;
+use glam::Vec3;
+use std::sync::Arc;
+use std::time::Instant;
+
+/// What every packet of a frame reads.
+pub(crate) struct Ctx<'a> {
+    pub top: &'a TopLevel,
+    pub basis: CameraBasis,
+    pub settings: &'a RenderSettings,
+    /// Unit direction towards the light.
+    pub light: Vec3,
+    /// Shadow and reflection rays start this far from their surface.
+    pub eps: f32,
+    /// Fill `rgba` with [`depth_grey`] when not shading.
+    pub grey: bool,
+}
+
+impl<'a> Ctx<'a> {
+    pub fn new(
+        top: &'a TopLevel,
+        basis: CameraBasis,
+        settings: &'a RenderSettings,
+        grey: bool,
+    ) -> Ctx<'a> {
+        Ctx {
+            top,
+            basis,
+            settings,
+            light: settings.light.normalize_or(Vec3::Y),
+            eps: SHADOW_EPS * settings.scene_diagonal,
+            grey,
+        }
+    }
+}
+
+/// Where finished packets write their pixels: `width` pixels a row, rows
+/// top to bottom.
+pub(crate) struct Region<'a> {
+    pub width: u32,
+    pub depth: &'a mut [f32],
+    pub primid: &'a mut [u32],
+    /// Empty when nobody asked for colors.
+    pub rgba: &'a mut [[u8; 4]],
+}
+
+/// The grey of a pixel at distance `depth` when the image is not shaded:
+/// `1 - depth / scene_diagonal`, clamped; the background on a miss. Needs
+/// nothing but the pixel itself, so tiles and frames agree.
+pub fn depth_grey(depth: f32, scene_diagonal: f32) -> [u8; 4] {
+    if depth.is_finite() {
+        let g = to_u8(1.0 - depth / scene_diagonal);
+        [g, g, g, 255]
+    } else {
+        rgba(BACKGROUND)
+    }
+}
+
+#[inline(always)]
+fn to_u8(v: f32) -> u8 {
+    (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8
+}
+
+#[inline(always)]
+fn rgba(c: Vec3) -> [u8; 4] {
+    [to_u8(c.x), to_u8(c.y), to_u8(c.z), 255]
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Stage {
+    /// Traversing the primary packet.
+    Primary,
+    /// Looking up the surfaces of the current hits (lanes before `lane`
+    /// are done).
+    Surface,
+    /// Traversing the shadow packet of the current bounce.
+    Shadow,
+    /// Traversing the reflection packet of the current bounce.
+    Reflect,
+    Done,
+}
+
+/// One packet of N rays from a BW-pixel-wide block, through every stage.
+pub(crate) struct PacketJob<const N: usize, const BW: u32> {
+    /// Region-local pixel of each lane (lanes past the region's edge
+    /// repeat its last pixel) and whether it is the lane's own.
+    px: [(u32, u32); N],
+    own: [bool; N],
+    stage: Stage,
+    trav: Traversal<N>,
+    /// The packet being traversed: primary, shadow or reflection.
+    packet: Packet<N>,
+    /// The hits being shaded: the primary ones, then each reflection's.
+    cur: Packet<N>,
+    cur_dirs: [Vec3; N],
+    origins: [Vec3; N],
+    reflected: [Vec3; N],
+    bounce: u32,
+    lane: usize,
+    color: [Vec3; N],
+    weight: [f32; N],
+    points: [Vec3; N],
+    normals: [Vec3; N],
+    albedo: [Vec3; N],
+    mirror: [f32; N],
+    /// The voxel of the last surface looked up (neighbouring lanes mostly
+    /// hit the same one).
+    last: Option<Arc<PreparedVoxel>>,
+}
+
+impl<const N: usize, const BW: u32> PacketJob<N, BW> {
+    /// A job for the block whose top left pixel is pixel (`bx`, `by`) of
+    /// `rect` (relative to its corner).
+    #[inline(always)]
+    pub fn new(ctx: &Ctx, rect: Rect, bx: u32, by: u32) -> Self {
+        let mut job = PacketJob {
+            px: [(0, 0); N],
+            own: [false; N],
+            stage: Stage::Primary,
+            trav: Traversal::default(),
+            packet: Packet::new(&[Vec3::ZERO; N], &[Vec3::X; N], 0.0, 0.0),
+            cur: Packet::new(&[Vec3::ZERO; N], &[Vec3::X; N], 0.0, 0.0),
+            cur_dirs: [Vec3::ZERO; N],
+            origins: [Vec3::ZERO; N],
+            reflected: [Vec3::ZERO; N],
+            bounce: 0,
+            lane: 0,
+            color: [Vec3::ZERO; N],
+            weight: [1.0; N],
+            points: [Vec3::ZERO; N],
+            normals: [Vec3::Y; N],
+            albedo: [Vec3::ZERO; N],
+            mirror: [0.0; N],
+            last: None,
+        };
+        job.start(ctx, rect, bx, by);
+        job
+    }
+
+    /// Reuses the job for the block at (`bx`, `by`) of `rect`.
+    #[inline(always)]
+    pub fn start(&mut self, ctx: &Ctx, rect: Rect, bx: u32, by: u32) {
+        let (x0, y0, w, h) = (rect.x0, rect.y0, rect.width, rect.height);
+        let mut dirs = [Vec3::ZERO; N];
+        for i in 0..N {
+            let (x, y) = (bx + i as u32 % BW, by + i as u32 / BW);
+            let (cx, cy) = (x.min(w - 1), y.min(h - 1));
+            self.px[i] = (cx, cy);
+            self.own[i] = x == cx && y == cy;
+            dirs[i] = ctx.basis.direction(x0 + cx, y0 + cy);
+        }
+        self.packet = Packet::new(&[ctx.basis.eye; N], &dirs, 0.0, f32::INFINITY);
+        self.cur_dirs = dirs;
+        self.trav.reset();
+        self.stage = Stage::Primary;
+        self.last = None;
+    }
+
+    /// Runs the packet until it is done (its pixels written to `out`) or
+    /// needs a voxel `source` lacks; then call again once it is resident.
+    #[inline(always)]
+    pub fn step(
+        &mut self,
+        ctx: &Ctx,
+        source: &dyn VoxelSource,
+        out: &mut Region,
+        stats: &mut FrameStats,
+    ) -> Step {
+        loop {
+            match self.stage {
+                Stage::Primary | Stage::Shadow | Stage::Reflect => {
+                    let shadow = self.stage == Stage::Shadow;
+                    let started = shadow.then(Instant::now);
+                    let step = self.trav.run(&mut self.packet, ctx.top, source);
+                    if let Some(s) = started {
+                        stats.shadow_seconds += s.elapsed().as_secs_f64();
+                    }
+                    if let Step::Missing(id) = step {
+                        return Step::Missing(id);
+                    }
+                    match self.stage {
+                        Stage::Primary => {
+                            stats.voxels_visited += self.trav.voxels_visited as u64;
+                            self.trav.reset();
+                            self.primary_done(ctx, out, stats);
+                        }
+                        Stage::Shadow => {
+                            self.trav.reset();
+                            self.shadow_done(ctx, out, stats);
+                        }
+                        _ => {
+                            self.trav.reset();
+                            std::mem::swap(&mut self.cur, &mut self.packet);
+                            self.origins = self.points;
+                            self.cur_dirs = self.reflected;
+                            self.bounce += 1;
+                            self.lane = 0;
+                            self.stage = Stage::Surface;
+                        }
+                    }
+                }
+                Stage::Surface => {
+                    if let Some(id) = self.surfaces(ctx, source) {
+                        return Step::Missing(id);
+                    }
+                    self.lane = 0;
+                    if ctx.settings.shadows {
+                        self.packet = Packet::new(&self.points, &[ctx.light; N], ctx.eps, f32::INFINITY);
+                        self.packet.any_hit = true;
+                        for i in 0..N {
+                            // Lanes without a surface to light take no part.
+                            if self.weight[i] == 0.0 {
+                                self.packet.t[i] = f32::NEG_INFINITY;
+                            }
+                        }
+                        self.stage = Stage::Shadow;
+                    } else {
+                        self.light(ctx, &[true; N], out, stats);
+                    }
+                }
+                Stage::Done => return Step::Done,
+            }
+        }
+    }
+
+    /// Writes the primary hits; starts shading.
+    #[inline(always)]
+    fn primary_done(&mut self, ctx: &Ctx, out: &mut Region, stats: &mut FrameStats) {
+        let p = &self.packet;
+        for i in 0..N {
+            if !self.own[i] {
+                continue;
+            }
+            let (x, y) = self.px[i];
+            let k = (y * out.width + x) as usize;
+            stats.primary_rays += 1;
+            if p.hit(i) {
+                out.depth[k] = p.t[i];
+                out.primid[k] = p.id[i];
+                stats.hits += 1;
+            }
+            if !ctx.settings.shade && ctx.grey {
+                let t = if p.hit(i) { p.t[i] } else { f32::INFINITY };
+                out.rgba[k] = depth_grey(t, ctx.settings.scene_diagonal);
+            }
+        }
+        if !ctx.settings.shade {
+            self.stage = Stage::Done;
+            return;
+        }
+        std::mem::swap(&mut self.cur, &mut self.packet);
+        self.origins = [ctx.basis.eye; N];
+        self.color = [Vec3::ZERO; N];
+        self.weight = [1.0; N];
+        self.bounce = 0;
+        self.lane = 0;
+        self.stage = Stage::Surface;
+    }
+
+    /// Surface, color and mirror share of each live lane's hit (Lambert
+    /// shading with the interpolated vertex normal and color); a lane that
+    /// hit nothing takes the background. `Some(id)` when voxel `id` is
+    /// missing: lanes before `self.lane` are done, call again to go on.
+    #[inline(always)]
+    fn surfaces(&mut self, ctx: &Ctx, source: &dyn VoxelSource) -> Option<u32> {
+        let s = ctx.settings;
+        if self.lane == 0 {
+            self.points = [Vec3::ZERO; N];
+            self.normals = [Vec3::Y; N];
+            self.albedo = [Vec3::ZERO; N];
+            self.mirror = [0.0; N];
+        }
+        let cur = &self.cur;
+        for i in self.lane..N {
+            if self.weight[i] == 0.0 {
+                continue;
+            }
+            if !cur.hit(i) {
+                self.color[i] += BACKGROUND * self.weight[i];
+                self.weight[i] = 0.0;
+                continue;
+            }
+            let id = cur.voxel[i];
+            if self.last.as_ref().is_none_or(|v| v.id != id) {
+                match source.voxel(id) {
+                    Some(v) => self.last = Some(v),
+                    None => {
+                        self.lane = i;
+                        return Some(id);
+                    }
+                }
+            }
+            let vox = self.last.as_ref().expect("just set");
+            let (mut n, c) = vox.surface(cur.tri[i], cur.u[i], cur.v[i]);
+            let c = Vec3::from_array(c);
+            if n.dot(self.cur_dirs[i]) > 0.0 {
+                n = -n;
+            }
+            self.points[i] = self.origins[i] + self.cur_dirs[i] * cur.t[i];
+            self.normals[i] = n;
+            self.albedo[i] = if s.voxel_colors { voxel_color(id) } else { c };
+            if self.bounce < s.reflections && s.reflective.matches(cur.id[i], c) {
+                self.mirror[i] = s.reflectance;
+            }
+        }
+        None
+    }
+
+    #[inline(always)]
+    fn shadow_done(&mut self, ctx: &Ctx, out: &mut Region, stats: &mut FrameStats) {
+        let mut lit = [true; N];
+        for i in 0..N {
+            if self.weight[i] > 0.0 {
+                lit[i] = !self.packet.occluded(i);
+                if self.own[i] {
+                    stats.shadow_rays += 1;
+                    stats.occluded += !lit[i] as u64;
+                }
+            }
+        }
+        self.light(ctx, &lit, out, stats);
+    }
+
+    /// Adds each lane's local light; starts the reflection packet, or
+    /// writes the colors when no lane reflects.
+    #[inline(always)]
+    fn light(&mut self, ctx: &Ctx, lit: &[bool; N], out: &mut Region, stats: &mut FrameStats) {
+        let mut any_mirror = false;
+        for i in 0..N {
+            if self.weight[i] == 0.0 {
+                continue;
+            }
+            let diffuse = if lit[i] {
+                self.normals[i].dot(ctx.light).max(0.0)
+            } else {
+                0.0
+            };
+            let local = self.albedo[i] * (AMBIENT + (1.0 - AMBIENT) * diffuse);
+            self.color[i] += local * (self.weight[i] * (1.0 - self.mirror[i]));
+            self.weight[i] *= self.mirror[i];
+            any_mirror |= self.weight[i] > 0.0;
+        }
+        if !any_mirror {
+            for i in 0..N {
+                if self.own[i] {
+                    let (x, y) = self.px[i];
+                    out.rgba[(y * out.width + x) as usize] = rgba(self.color[i]);
+                }
+            }
+            self.stage = Stage::Done;
+            self.last = None;
+            return;
+        }
+        for i in 0..N {
+            let d = self.cur_dirs[i];
+            let n = self.normals[i];
+            self.reflected[i] = (d - n * (2.0 * d.dot(n))).normalize_or(n);
+        }
+        self.packet = Packet::new(&self.points, &self.reflected, ctx.eps, f32::INFINITY);
+        for i in 0..N {
+            if self.weight[i] == 0.0 {
+                self.packet.t[i] = f32::NEG_INFINITY;
+            } else if self.own[i] {
+                stats.reflection_rays += 1;
+            }
+        }
+        self.stage = Stage::Reflect;
+    }
+}
