@@ -52,7 +52,8 @@ impl VoxelCache {
                 })
                 .collect(),
             budget: budget_bytes,
-            clock: AtomicU64::new(0),
+            // Above every initial stamp, so a first use always stamps.
+            clock: AtomicU64::new(1),
             resident: AtomicU64::new(0),
             peak: AtomicU64::new(0),
             evicted: AtomicU64::new(0),
