@@ -8,9 +8,7 @@ mod client_common;
 use client_common::*;
 use dray_actors::client::{run_client, ClientOptions};
 use dray_actors::{names, ActorError};
-use dray_protocol::{
-    Blob, ManifestData, Message, Shutdown, VoxelError, VoxelLoaded,
-};
+use dray_protocol::{Blob, ManifestData, Message, Shutdown, VoxelError, VoxelLoaded};
 use dray_runtime::{InProcNet, LinkShape, Mailbox, Role};
 use dray_scene::db::manifest::MANIFEST_FILE;
 use dray_scene::db::Database;
@@ -107,9 +105,7 @@ async fn corrupt_and_refused_voxels_are_fetched_again() {
         let dir = db.path.clone();
         let store = tokio::spawn(async move { faulty_store(store_mb, &dir, manifest).await });
         let mut fe = FakeFrontEnd::new(&net);
-        let client_bus = net
-            .add_node(names::client_node(0), Role::Client)
-            .unwrap();
+        let client_bus = net.add_node(names::client_node(0), Role::Client).unwrap();
         net.set_shape(
             &names::client_node(0),
             &names::store_node(0),
@@ -155,9 +151,7 @@ async fn an_unusable_manifest_stops_the_client_with_an_error() {
     let store_bus = net.add_node(names::store_node(0), Role::Store).unwrap();
     let store_mb = store_bus.mailbox(name(names::STORE), 16).unwrap();
     let _fe = FakeFrontEnd::new(&net);
-    let client_bus = net
-        .add_node(names::client_node(0), Role::Client)
-        .unwrap();
+    let client_bus = net.add_node(names::client_node(0), Role::Client).unwrap();
     let mb = client_bus.mailbox(name(names::CLIENT), 16).unwrap();
     let client = tokio::spawn(run_client(mb, options(MissMode::Suspend)));
     let store = tokio::spawn(async move {

@@ -46,9 +46,7 @@ async fn run(db: &Db, cache_bytes: u64, mode: MissMode, hint: bool, outage: bool
     let net = InProcNet::new();
     let (_store_bus, store) = start_store(&net, 0, db.path.clone(), Shard::ALL);
     let mut fe = FakeFrontEnd::new(&net);
-    let client_bus = net
-        .add_node(names::client_node(0), Role::Client)
-        .unwrap();
+    let client_bus = net.add_node(names::client_node(0), Role::Client).unwrap();
     let shape = LinkShape {
         latency: LATENCY,
         ..LinkShape::default()
@@ -66,16 +64,22 @@ async fn run(db: &Db, cache_bytes: u64, mode: MissMode, hint: bool, outage: bool
             net.disconnect(&names::client_node(0), &names::store_node(0));
             tokio::time::sleep(Duration::from_millis(150)).await;
             net.reconnect(&names::client_node(0), &names::store_node(0));
+            tokio::time::Instant::now()
         })
     });
     let out = render_frame(&mut fe, &db.db, &names::client(0), hint).await;
+    let finished = tokio::time::Instant::now();
     let summary = tokio::time::timeout(Duration::from_secs(30), client)
         .await
         .expect("the client stops when told")
         .unwrap()
         .unwrap();
     if let Some(cut) = cut {
-        cut.await.unwrap();
+        let back = cut.await.unwrap();
+        assert!(
+            finished > back,
+            "the frame was done before the store came back"
+        );
     }
     fe.scheduler
         .send(
@@ -95,6 +99,7 @@ async fn run(db: &Db, cache_bytes: u64, mode: MissMode, hint: bool, outage: bool
     );
     assert_eq!(summary.tiles, 24);
     assert_eq!(out.reports, 24);
+    eprintln!("{summary:?}");
     Run { out, summary }
 }
 

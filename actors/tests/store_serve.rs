@@ -67,7 +67,10 @@ async fn serves_every_voxel_as_stored_and_refuses_unknown_ids() {
         .unwrap();
     match next(&mut mb).await {
         Message::ManifestData(m) => {
-            assert_eq!(m.data.0, std::fs::read(db.path.join(MANIFEST_FILE)).unwrap())
+            assert_eq!(
+                m.data.0,
+                std::fs::read(db.path.join(MANIFEST_FILE)).unwrap()
+            )
         }
         other => panic!("unexpected {other:?}"),
     }
@@ -85,7 +88,12 @@ async fn serves_every_voxel_as_stored_and_refuses_unknown_ids() {
     assert_eq!(summary.served, u64::from(n));
     assert_eq!(
         summary.bytes_served,
-        db.db.manifest.voxels.iter().map(|v| v.compressed_bytes).sum::<u64>()
+        db.db
+            .manifest
+            .voxels
+            .iter()
+            .map(|v| v.compressed_bytes)
+            .sum::<u64>()
     );
     assert_eq!(summary.refused, 1);
     assert_eq!(summary.manifests, 1);
@@ -93,7 +101,7 @@ async fn serves_every_voxel_as_stored_and_refuses_unknown_ids() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_shard_serves_its_voxels_only() {
-    let db = plant_db(5_000);
+    let db = plant_db(20_000);
     let n = db.db.manifest.voxels.len() as u32;
     let net = InProcNet::new();
     let shard = Shard { index: 1, count: 2 };
@@ -113,7 +121,12 @@ async fn a_shard_serves_its_voxels_only() {
                 assert!(v.data.0 == db.db.read_blob(v.id).unwrap());
             }
             Message::VoxelError(e) => {
-                assert!(!shard.owns(e.id), "refused its own voxel {}: {}", e.id, e.message);
+                assert!(
+                    !shard.owns(e.id),
+                    "refused its own voxel {}: {}",
+                    e.id,
+                    e.message
+                );
                 assert!(e.message.contains("shard 1/2"), "{}", e.message);
             }
             other => panic!("unexpected {other:?}"),

@@ -109,7 +109,9 @@ impl VoxelCache {
             *s = Some(voxel.clone());
         }
         self.touch(slot);
-        let now = self.resident.fetch_add(voxel.bytes as u64, Ordering::Relaxed)
+        let now = self
+            .resident
+            .fetch_add(voxel.bytes as u64, Ordering::Relaxed)
             + voxel.bytes as u64;
         let mut freed = 0;
         if now > self.budget {

@@ -351,7 +351,11 @@ impl Loader {
                 warn!(voxel = d.id, store = %d.store, error = %why, tries = p.failures,
                     "voxel failed verification; fetching it again");
                 if p.failures >= MAX_TRIES {
-                    self.fail(d.id, p, format!("{why} from {} ({MAX_TRIES} tries)", d.store));
+                    self.fail(
+                        d.id,
+                        p,
+                        format!("{why} from {} ({MAX_TRIES} tries)", d.store),
+                    );
                 } else {
                     self.stats.retries += 1;
                     p.state = State::Queued;
@@ -401,7 +405,9 @@ impl Loader {
         let again: Vec<u32> = self
             .pending
             .iter()
-            .filter(|(_, p)| matches!(&p.state, State::InFlight { store, .. } if &store.node == node))
+            .filter(
+                |(_, p)| matches!(&p.state, State::InFlight { store, .. } if &store.node == node),
+            )
             .map(|(&id, _)| id)
             .collect();
         if !again.is_empty() {

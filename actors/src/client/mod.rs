@@ -23,8 +23,8 @@ use crate::settings::{kernel_camera, kernel_settings};
 use crate::ActorError;
 use cache::VoxelCache;
 use dray_protocol::{
-    Address, AssignTile, Blob, FetchManifest, Message, PackedF32, PackedU32, RequestWork,
-    TileDone, TileReport, TileStats,
+    Address, AssignTile, Blob, FetchManifest, Message, PackedF32, PackedU32, RequestWork, TileDone,
+    TileReport, TileStats,
 };
 use dray_runtime::{ActorRef, Delivery, Mailbox};
 use dray_scene::db::manifest::Manifest;
@@ -153,10 +153,11 @@ async fn fetch_manifest(
                 Ok(None) => return Ok(Start::Stop),
                 Ok(Some(Delivery::Message { from, msg })) => match msg {
                     Message::ManifestData(m) => {
-                        let manifest = Manifest::decode(&m.data.0).map_err(|e| ActorError::Peer {
-                            actor: actor.into(),
-                            message: format!("the manifest from {from} is unusable: {e}"),
-                        })?;
+                        let manifest =
+                            Manifest::decode(&m.data.0).map_err(|e| ActorError::Peer {
+                                actor: actor.into(),
+                                message: format!("the manifest from {from} is unusable: {e}"),
+                            })?;
                         info!(%actor, %from, voxels = manifest.voxels.len(), "manifest received");
                         return Ok(Start::Ready(manifest));
                     }
@@ -332,7 +333,9 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
         handles
             .into_iter()
             .map(|h| h.join().is_ok())
-            .fold(true, |all, ok| all && ok)
+            .collect::<Vec<bool>>()
+            .into_iter()
+            .all(|ok| ok)
     })
     .await;
     if !matches!(joined, Ok(true)) {
@@ -393,8 +396,8 @@ fn finish_tile(
                 frame: job.frame,
                 tile: job.tile,
                 pixels: Blob(pixels),
-                depth: job.want_depth.then(|| PackedF32(img.depth)),
-                prim_ids: job.want_prim_ids.then(|| PackedU32(img.primid)),
+                depth: job.want_depth.then_some(PackedF32(img.depth)),
+                prim_ids: job.want_prim_ids.then_some(PackedU32(img.primid)),
                 stats,
             };
             let _ = out.send((opts.display.clone(), Message::TileDone(done)));

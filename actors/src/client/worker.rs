@@ -78,7 +78,11 @@ async fn run_job(ctx: &WorkerCtx, index: usize, job: TileJob) -> TileResult {
 
 /// The body of render thread `index`: renders the tiles it receives until
 /// its channel closes or the client stops.
-pub(crate) fn render_thread(ctx: WorkerCtx, index: usize, mut tiles: mpsc::UnboundedReceiver<TileJob>) {
+pub(crate) fn render_thread(
+    ctx: WorkerCtx,
+    index: usize,
+    mut tiles: mpsc::UnboundedReceiver<TileJob>,
+) {
     let limit = match ctx.mode {
         MissMode::Block => 1,
         MissMode::Suspend => ctx.tiles_in_progress.max(1),

@@ -9,8 +9,8 @@ use dray_actors::settings::kernel_settings;
 use dray_actors::store::{run_store, StoreOptions, StoreSummary};
 use dray_actors::{ActorError, Shard};
 use dray_protocol::{
-    AssignTile, Camera as WireCamera, Message, PrefetchHint, Reflective, RenderSettings,
-    Shutdown, TileRect,
+    AssignTile, Camera as WireCamera, Message, PrefetchHint, Reflective, RenderSettings, Shutdown,
+    TileRect,
 };
 use dray_runtime::{Bus, Delivery, InProcNet, Mailbox, Name, Role};
 use dray_scene::db::Database;
@@ -220,8 +220,8 @@ pub async fn render_frame(
             d = fe.display.recv() => d,
             _ = tokio::time::sleep_until(deadline) => panic!("frame not done in time: {done} of {total} tiles"),
         };
-        match d.expect("bus gone") {
-            Delivery::Message { msg, .. } => match msg {
+        if let Delivery::Message { msg, .. } = d.expect("bus gone") {
+            match msg {
                 Message::RequestWork(r) => {
                     if std::mem::take(&mut hint) {
                         // The client is up: hint at every voxel.
@@ -242,11 +242,13 @@ pub async fn render_frame(
                 Message::TileReport(r) => {
                     assert_eq!(r.frame, 7);
                     assert!(r.stats.rays >= (TILE * TILE) as u64);
+                    // The client reports a tile before asking for the next
+                    // one, on the same link: count in-progress tiles here.
+                    outstanding -= 1;
                     out.reports += 1;
                 }
                 Message::TileDone(t) => {
                     assert_eq!(t.frame, 7);
-                    outstanding -= 1;
                     done += 1;
                     let r = t.tile;
                     let depth = t.depth.expect("depth asked for").0;
@@ -262,8 +264,7 @@ pub async fn render_frame(
                     }
                 }
                 other => panic!("unexpected {other:?}"),
-            },
-            _ => {}
+            }
         }
     }
     // Reports may trail the pixels a little.
@@ -291,13 +292,19 @@ pub fn assert_same(got: &Assembled, want: &Frame, what: &str) {
     let mut hits = 0;
     for p in 0..(WIDTH * HEIGHT) as usize {
         let (x, y) = (p as u32 % WIDTH, p as u32 / WIDTH);
-        assert_eq!(got.primid[p], want.primid[p], "{what}: id of pixel ({x}, {y})");
+        assert_eq!(
+            got.primid[p], want.primid[p],
+            "{what}: id of pixel ({x}, {y})"
+        );
         assert_eq!(
             got.depth[p].to_bits(),
             want.depth[p].to_bits(),
             "{what}: depth of pixel ({x}, {y})"
         );
-        assert_eq!(got.rgba[p], want.rgba[p], "{what}: color of pixel ({x}, {y})");
+        assert_eq!(
+            got.rgba[p], want.rgba[p],
+            "{what}: color of pixel ({x}, {y})"
+        );
         hits += (want.primid[p] != u32::MAX) as usize;
     }
     assert!(
