@@ -225,7 +225,8 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
                     }
                     self.lane = 0;
                     if ctx.settings.shadows {
-                        self.packet = Packet::new(&self.points, &[ctx.light; N], ctx.eps, f32::INFINITY);
+                        self.packet =
+                            Packet::new(&self.points, &[ctx.light; N], ctx.eps, f32::INFINITY);
                         self.packet.any_hit = true;
                         for i in 0..N {
                             // Lanes without a surface to light take no part.
@@ -316,9 +317,17 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
             if n.dot(self.cur_dirs[i]) > 0.0 {
                 n = -n;
             }
-            self.points[i] = self.origins[i] + self.cur_dirs[i] * cur.t[i];
+            let point = self.origins[i] + self.cur_dirs[i] * cur.t[i];
+            self.points[i] = point;
             self.normals[i] = n;
-            self.albedo[i] = if s.voxel_colors { voxel_color(id) } else { c };
+            self.albedo[i] = if s.voxel_colors {
+                // The voxel whose cell holds the point: the one the hit
+                // was found in depends on the traversal order when the
+                // triangle straddles cells.
+                voxel_color(ctx.top.voxel_at(point).unwrap_or(id))
+            } else {
+                c
+            };
             if self.bounce < s.reflections && s.reflective.matches(cur.id[i], c) {
                 self.mirror[i] = s.reflectance;
             }

@@ -8,8 +8,8 @@
 #![allow(clippy::needless_range_loop)]
 
 use crate::camera::{Camera, CameraBasis};
-use crate::job::{Ctx, PacketJob, Region};
 pub use crate::job::depth_grey;
+use crate::job::{Ctx, PacketJob, Region};
 use crate::packet::Step;
 use crate::scene::{TopLevel, VoxelSource};
 use crate::tile::Rect;
@@ -101,7 +101,8 @@ pub struct RenderSettings {
     /// Which surfaces reflect, and how much of the light they reflect.
     pub reflective: ReflectRule,
     pub reflectance: f32,
-    /// Color by voxel instead of by vertex color.
+    /// Color by voxel instead of by vertex color (the voxel whose cell
+    /// holds the hit point).
     pub voxel_colors: bool,
 }
 

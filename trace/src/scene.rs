@@ -59,6 +59,31 @@ impl TopLevel {
     }
 }
 
+impl TopLevel {
+    /// The voxel whose cell holds point `p` (a point on a split plane
+    /// goes right); `None` for empty space or a point outside the model.
+    /// Unlike the voxel a hit was found in (a triangle that straddles a
+    /// split is in several), this depends on the point only.
+    pub fn voxel_at(&self, p: Vec3) -> Option<u32> {
+        let mut node = 0usize;
+        // A tree is at most as deep as it has nodes.
+        for _ in 0..self.nodes.len() {
+            match *self.nodes.get(node)? {
+                TopNode::Leaf { voxel } => return voxel,
+                TopNode::Split {
+                    axis,
+                    pos,
+                    left,
+                    right,
+                } => {
+                    node = if p[axis as usize] < pos { left } else { right } as usize;
+                }
+            }
+        }
+        None
+    }
+}
+
 /// Each node's content box, children before parents (an explicit
 /// post-order walk: the manifest is trusted to be a tree, not to be in any
 /// particular order).

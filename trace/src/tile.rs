@@ -2,8 +2,8 @@
 //! that meet a missing voxel wait (suspend mode) while the others go on,
 //! or the whole tile waits for each miss in turn (block mode, the
 //! demand-paging baseline the paper compares against). Each packet runs
-//! the same resumable [`PacketJob`] as [`crate::render::render`], so the
-//! pixels are the frame's, bit for bit.
+//! the same resumable per-packet state machine (`job.rs`) as
+//! [`crate::render::render`], so the pixels are the frame's, bit for bit.
 
 use crate::camera::Camera;
 use crate::job::{Ctx, PacketJob, Region};
@@ -97,8 +97,14 @@ pub async fn render_tile(
 ) -> Result<TileImage, LoadError> {
     let inside = rect.width > 0
         && rect.height > 0
-        && rect.x0.checked_add(rect.width).is_some_and(|x| x <= camera.width)
-        && rect.y0.checked_add(rect.height).is_some_and(|y| y <= camera.height);
+        && rect
+            .x0
+            .checked_add(rect.width)
+            .is_some_and(|x| x <= camera.width)
+        && rect
+            .y0
+            .checked_add(rect.height)
+            .is_some_and(|y| y <= camera.height);
     if !inside {
         return Err(LoadError {
             voxel: u32::MAX,
@@ -313,7 +319,10 @@ async fn drive<const N: usize, const BW: u32>(
     stats.primary_rays = fs.primary_rays;
     stats.shadow_rays = fs.shadow_rays;
     stats.reflection_rays = fs.reflection_rays;
-    stats.voxels_touched = touched.into_inner().unwrap_or_else(|p| p.into_inner()).len() as u32;
+    stats.voxels_touched = touched
+        .into_inner()
+        .unwrap_or_else(|p| p.into_inner())
+        .len() as u32;
     Ok(TileImage {
         rect,
         rgba,

@@ -1,73 +1,18 @@
 //! The kernel against brute force: every pixel's primitive id and depth,
 //! for every instruction set this CPU has, with and without suspension.
 
-use dray_scene::db::Database;
-use dray_scene::generate::{generate_plant, PlantParams};
+mod common;
+
+use common::{cameras, isas, plant, settings, shared_model, Model};
 use dray_scene::geometry::{closer, intersect_triangle, Hit, Ray};
-use dray_scene::import::{import_model, ImportOptions};
-use dray_scene::preprocess::{preprocess, PreprocessOptions};
-use dray_scene::progress::Progress;
 use dray_scene::rng::Rng;
 use dray_trace::camera::Camera;
 use dray_trace::packet::{Packet, Step, Traversal};
-use dray_trace::render::{render, Frame, Isa, RenderSettings};
-use dray_trace::scene::{PreparedVoxel, ResidentSource, TopLevel, VoxelSource};
+use dray_trace::render::{render, Frame, Isa};
+use dray_trace::scene::{PreparedVoxel, ResidentSource, VoxelSource};
 use glam::Vec3;
 use std::collections::{HashSet, VecDeque};
-use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
-
-struct Model {
-    _dir: tempfile::TempDir,
-    tris: Vec<[Vec3; 3]>,
-    top: TopLevel,
-    source: ResidentSource,
-    db: Database,
-}
-
-fn load(model: &Path, dir: tempfile::TempDir, max_triangles: u32) -> Model {
-    let mut tris = Vec::new();
-    import_model(model, 0, &ImportOptions::default(), &mut |t| {
-        tris.push(t.positions);
-        Ok(())
-    })
-    .unwrap();
-    let db_path = dir.path().join("db");
-    preprocess(
-        &PreprocessOptions {
-            max_triangles,
-            ..PreprocessOptions::new(vec![model.to_path_buf()], db_path.clone())
-        },
-        &Progress::hidden(),
-    )
-    .unwrap();
-    let db = Database::open(&db_path).unwrap();
-    Model {
-        _dir: dir,
-        tris,
-        top: TopLevel::from_manifest(&db.manifest),
-        source: ResidentSource::load(&db).unwrap(),
-        db,
-    }
-}
-
-fn plant(triangles: u64) -> Model {
-    let dir = tempfile::tempdir().unwrap();
-    let model = dir.path().join("plant.ply");
-    generate_plant(&PlantParams { triangles, seed: 5 }, &model, &mut |_| {}).unwrap();
-    load(&model, dir, 512)
-}
-
-fn shared_model(name: &str) -> Model {
-    let dir = tempfile::tempdir().unwrap();
-    let src = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../../shared/models")
-        .join(format!("{name}.ply.zst"));
-    let out = dir.path().join(format!("{name}.ply"));
-    let input = std::fs::File::open(&src).unwrap_or_else(|e| panic!("{}: {e}", src.display()));
-    zstd::stream::copy_decode(input, std::fs::File::create(&out).unwrap()).unwrap();
-    load(&out, dir, 2048)
-}
 
 fn brute_force(tris: &[[Vec3; 3]], ray: &Ray) -> Option<Hit> {
     let mut best: Option<Hit> = None;
@@ -78,24 +23,6 @@ fn brute_force(tris: &[[Vec3; 3]], ray: &Ray) -> Option<Hit> {
         }
     }
     best
-}
-
-fn isas() -> Vec<Isa> {
-    let mut v = vec![Isa::Portable];
-    match Isa::detect() {
-        Isa::Avx512 => v.extend([Isa::Avx2, Isa::Avx512]),
-        Isa::Avx2 => v.push(Isa::Avx2),
-        Isa::Portable => {}
-    }
-    v
-}
-
-fn settings(isa: Isa, m: &Model) -> RenderSettings {
-    RenderSettings {
-        threads: 2,
-        isa,
-        ..RenderSettings::primary(m.db.manifest.model_bounds.diagonal())
-    }
 }
 
 /// Every pixel equals brute force exactly: same id, same distance bits.
@@ -119,29 +46,6 @@ fn check_against_brute_force(m: &Model, camera: &Camera, frame: &Frame, what: &s
         hits > pixels / 10,
         "{what}: only {hits} of {pixels} pixels hit"
     );
-}
-
-fn cameras(m: &Model, w: u32, h: u32) -> Vec<Camera> {
-    let b = m.db.manifest.model_bounds;
-    let outside = Camera::default_for(&b, w, h);
-    let c = b.center();
-    let e = b.extent();
-    vec![
-        outside,
-        // Close up, looking across the model from inside its box.
-        Camera {
-            eye: c + Vec3::new(-0.3 * e.x, 0.1 * e.y, 0.2 * e.z),
-            look: c + Vec3::new(0.4 * e.x, 0.0, -0.3 * e.z),
-            ..outside
-        },
-        // Straight down, axis-aligned rays (the watertight test's edge case).
-        Camera {
-            eye: c + Vec3::new(0.0, 1.2 * e.max_element(), 0.0),
-            look: c,
-            up: Vec3::Z,
-            ..outside
-        },
-    ]
 }
 
 #[test]

@@ -6,8 +6,9 @@ use dray_scene::preprocess::{preprocess, PreprocessOptions};
 use dray_scene::progress::Progress;
 use dray_trace::camera::Camera;
 use dray_trace::render::Isa;
+use dray_trace::render::RenderSettings;
 use dray_trace::scene::{PreparedVoxel, ResidentSource, TopLevel, VoxelSource};
-use dray_trace::tile::{trace_tile, LoadError, MissMode, Rect, TileHits, VoxelLoader};
+use dray_trace::tile::{render_tile, LoadError, MissMode, Rect, TileImage, VoxelLoader};
 use futures::future::BoxFuture;
 use glam::Vec3;
 use std::collections::HashSet;
@@ -35,11 +36,14 @@ impl VoxelSource for SlowLoader {
 }
 
 impl VoxelLoader for SlowLoader {
-    fn load(&self, id: u32) -> BoxFuture<'_, Result<(), LoadError>> {
+    fn load(&self, id: u32) -> BoxFuture<'_, Result<Arc<PreparedVoxel>, LoadError>> {
         Box::pin(async move {
             tokio::time::sleep(DELAY).await;
             self.resident.lock().unwrap().insert(id);
-            Ok(())
+            self.all.voxel(id).ok_or(LoadError {
+                voxel: id,
+                message: "no such voxel".into(),
+            })
         })
     }
 }
@@ -101,7 +105,7 @@ fn scene() -> (tempfile::TempDir, Camera, TopLevel, ResidentSource) {
     (dir, cam, top, all)
 }
 
-async fn run(mode: MissMode) -> (Duration, TileHits) {
+async fn run(mode: MissMode) -> (Duration, TileImage) {
     let (_dir, cam, top, all) = scene();
     let loader = SlowLoader {
         all,
@@ -114,7 +118,11 @@ async fn run(mode: MissMode) -> (Duration, TileHits) {
         height: 32,
     };
     let start = Instant::now();
-    let hits = trace_tile(&top, &loader, &cam.basis(), rect, mode, Isa::detect())
+    let settings = RenderSettings {
+        isa: Isa::detect(),
+        ..RenderSettings::primary(20.0)
+    };
+    let hits = render_tile(&top, &loader, &cam, rect, &settings, mode)
         .await
         .unwrap();
     (start.elapsed(), hits)
@@ -123,7 +131,7 @@ async fn run(mode: MissMode) -> (Duration, TileHits) {
 #[tokio::test(start_paused = true)]
 async fn suspend_mode_overlaps_the_sixteen_fetches() {
     let (elapsed, hits) = run(MissMode::Suspend).await;
-    assert_eq!(hits.requested, 16);
+    assert_eq!(hits.stats.requested, 16);
     assert!(
         hits.primid.iter().all(|&p| p != u32::MAX),
         "every pixel hits a square"
@@ -137,7 +145,7 @@ async fn suspend_mode_overlaps_the_sixteen_fetches() {
 #[tokio::test(start_paused = true)]
 async fn block_mode_waits_for_each_fetch_in_turn() {
     let (elapsed, hits) = run(MissMode::Block).await;
-    assert_eq!(hits.requested, 16);
+    assert_eq!(hits.stats.requested, 16);
     assert_eq!(elapsed, DELAY * 16, "block mode");
     let (_, suspended) = run(MissMode::Suspend).await;
     assert_eq!(
