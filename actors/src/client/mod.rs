@@ -1,1 +1,417 @@
 //! The Client actor: voxel cache, loader and render threads.
+//!
+//! At start the client asks a store for the manifest (the high-level BSP
+//! and the voxel table), then asks the scheduler for `threads +
+//! tiles_ahead` tiles. Each [`AssignTile`] goes to the least busy render
+//! thread ([`worker`]); each finished tile goes to the display
+//! ([`TileDone`]) and is reported to the scheduler ([`TileReport`]), which
+//! is asked for one more tile. Voxels come through the [`loader`] into the
+//! [`cache`], shared by every render thread.
+//!
+//! The actor task itself only does bookkeeping: messages go out through
+//! sender tasks, blobs are decoded on tokio's blocking pool, and tracing
+//! runs on the render threads, so the mailbox is always served promptly.
+
+pub mod cache;
+mod loader;
+mod worker;
+
+pub use loader::{FETCH_TIMEOUT, MAX_TRIES, RETRY_DELAY};
+
+use crate::names::StoreRoutes;
+use crate::settings::{kernel_camera, kernel_settings};
+use crate::ActorError;
+use cache::VoxelCache;
+use dray_protocol::{
+    Address, AssignTile, Blob, FetchManifest, Message, PackedF32, PackedU32, RequestWork, TileDone,
+    TileReport, TileStats,
+};
+use dray_runtime::{ActorRef, Delivery, Mailbox};
+use dray_scene::db::manifest::Manifest;
+use dray_trace::scene::TopLevel;
+use dray_trace::tile::MissMode;
+use loader::{Loader, Shared};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use tokio::sync::mpsc;
+use tokio::time::{timeout, timeout_at, Duration, Instant};
+use tracing::{debug, info, warn};
+use worker::{render_thread, TileJob, TileResult, WorkerCtx};
+
+/// How long to wait for a store's manifest before asking another store.
+pub const MANIFEST_TIMEOUT: Duration = Duration::from_secs(5);
+/// How often retries and fetch timeouts are looked at.
+const TICK: Duration = Duration::from_millis(20);
+
+/// How a client runs.
+#[derive(Clone, Debug)]
+pub struct ClientOptions {
+    /// Render threads.
+    pub threads: usize,
+    /// Voxel cache budget in bytes (of prepared voxels).
+    pub cache_bytes: u64,
+    /// Suspend packets on a miss, or block the thread (the baseline).
+    pub miss_mode: MissMode,
+    /// Most voxel fetches in flight at once.
+    pub max_inflight_fetches: usize,
+    /// Tiles asked for beyond one per thread (latency hiding).
+    pub tiles_ahead: usize,
+    /// The tracing kernel.
+    pub isa: dray_trace::render::Isa,
+    /// Where voxels come from.
+    pub stores: StoreRoutes,
+    /// The scheduler's address.
+    pub scheduler: Address,
+    /// The display's address.
+    pub display: Address,
+}
+
+/// What a client did, returned when it stops.
+#[derive(Clone, Debug, Default)]
+pub struct ClientSummary {
+    /// Tiles rendered.
+    pub tiles: u64,
+    /// Rays traced (primary, shadow, reflection).
+    pub rays: u64,
+    /// Times a packet met a missing voxel.
+    pub misses: u64,
+    /// Voxels fetched (and verified).
+    pub fetched: u64,
+    /// Compressed bytes of those voxels.
+    pub bytes_fetched: u64,
+    /// Voxels fetched again after they had been evicted.
+    pub refetched: u64,
+    /// Voxels evicted from the cache.
+    pub evicted: u64,
+    /// The most bytes the cache held at once.
+    pub peak_cache_bytes: u64,
+    /// Voxels fetched because of a prefetch hint.
+    pub prefetched: u64,
+}
+
+/// Sends messages in order from a task of their own, so that the actor
+/// loop never waits on a slow peer; failures are logged.
+fn sender(me: ActorRef, what: &'static str) -> mpsc::UnboundedSender<(Address, Message)> {
+    let (tx, mut rx) = mpsc::unbounded_channel::<(Address, Message)>();
+    tokio::spawn(async move {
+        while let Some((to, msg)) = rx.recv().await {
+            let kind = msg.kind().name();
+            if let Err(e) = me.send(&to, msg).await {
+                warn!(%to, kind, error = %e, "{what}: sending failed");
+            }
+        }
+    });
+    tx
+}
+
+enum Start<T> {
+    Ready(T),
+    Stop,
+}
+
+/// Asks the stores for the manifest until one answers.
+async fn fetch_manifest(
+    mb: &mut Mailbox,
+    opts: &ClientOptions,
+    actor: &str,
+) -> Result<Start<Manifest>, ActorError> {
+    let bus = mb.handle().bus().clone();
+    let stores: Vec<Address> = opts.stores.all().cloned().collect();
+    let mut next = 0;
+    loop {
+        let pick = (0..stores.len())
+            .map(|k| (next + k) % stores.len())
+            .find(|&i| bus.is_connected(&stores[i].node));
+        let Some(i) = pick else {
+            // No store connected: wait for one (or a shutdown).
+            match timeout(Duration::from_millis(250), mb.recv()).await {
+                Ok(None) => return Ok(Start::Stop),
+                Ok(Some(Delivery::Message {
+                    msg: Message::Shutdown(_),
+                    ..
+                })) => return Ok(Start::Stop),
+                _ => continue,
+            }
+        };
+        next = i + 1;
+        let store = &stores[i];
+        if let Err(e) = mb
+            .send(store, Message::FetchManifest(FetchManifest {}))
+            .await
+        {
+            warn!(%actor, %store, error = %e, "cannot ask for the manifest");
+            tokio::time::sleep(Duration::from_millis(100)).await;
+            continue;
+        }
+        let deadline = Instant::now() + MANIFEST_TIMEOUT;
+        loop {
+            match timeout_at(deadline, mb.recv()).await {
+                Err(_) => {
+                    warn!(%actor, %store, "no manifest in time; asking again");
+                    break;
+                }
+                Ok(None) => return Ok(Start::Stop),
+                Ok(Some(Delivery::Message { from, msg })) => match msg {
+                    Message::ManifestData(m) => {
+                        let manifest =
+                            Manifest::decode(&m.data.0).map_err(|e| ActorError::Peer {
+                                actor: actor.into(),
+                                message: format!("the manifest from {from} is unusable: {e}"),
+                            })?;
+                        info!(%actor, %from, voxels = manifest.voxels.len(), "manifest received");
+                        return Ok(Start::Ready(manifest));
+                    }
+                    Message::Shutdown(_) => return Ok(Start::Stop),
+                    other => debug!(%actor, kind = other.kind().name(), "ignored while starting"),
+                },
+                Ok(Some(Delivery::PeerDown { node, .. })) if node == store.node => break,
+                Ok(Some(_)) => {}
+            }
+        }
+    }
+}
+
+/// Waits until the scheduler is connected.
+async fn wait_for_scheduler(mb: &mut Mailbox, opts: &ClientOptions) -> Start<()> {
+    let bus = mb.handle().bus().clone();
+    loop {
+        if bus.is_connected(&opts.scheduler.node) {
+            return Start::Ready(());
+        }
+        match timeout(Duration::from_millis(250), mb.recv()).await {
+            Ok(None) => return Start::Stop,
+            Ok(Some(Delivery::Message {
+                msg: Message::Shutdown(_),
+                ..
+            })) => return Start::Stop,
+            _ => {}
+        }
+    }
+}
+
+fn slots(n: usize) -> u16 {
+    n.min(u16::MAX as usize) as u16
+}
+
+/// Runs a client until it gets [`Message::Shutdown`] or its mailbox
+/// closes.
+pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSummary, ActorError> {
+    let actor = mb.address().to_string();
+    let mut summary = ClientSummary::default();
+    let manifest = match fetch_manifest(&mut mb, &opts, &actor).await? {
+        Start::Ready(m) => Arc::new(m),
+        Start::Stop => return Ok(summary),
+    };
+    let top = Arc::new(TopLevel::from_manifest(&manifest));
+    let diagonal = manifest.model_bounds.diagonal();
+    if let Start::Stop = wait_for_scheduler(&mut mb, &opts).await {
+        return Ok(summary);
+    }
+
+    let me = mb.handle();
+    let fetches = sender(me.clone(), "voxel fetch");
+    let results = sender(me.clone(), "tile result");
+    let cache = Arc::new(VoxelCache::new(manifest.voxels.len(), opts.cache_bytes));
+    let (req_tx, mut req_rx) = mpsc::unbounded_channel();
+    let (decoded_tx, mut decoded_rx) = mpsc::unbounded_channel();
+    let (done_tx, mut done_rx) = mpsc::unbounded_channel::<TileResult>();
+    let mut loader = Loader::new(
+        manifest.clone(),
+        cache.clone(),
+        opts.stores.clone(),
+        opts.max_inflight_fetches,
+        fetches,
+        decoded_tx,
+    );
+    let shared = Arc::new(Shared {
+        cache: cache.clone(),
+        requests: req_tx,
+    });
+    let stop = Arc::new(AtomicBool::new(false));
+    let threads = opts.threads.max(1);
+    let mut queues = Vec::with_capacity(threads);
+    let mut handles = Vec::with_capacity(threads);
+    for i in 0..threads {
+        let (tx, rx) = mpsc::unbounded_channel();
+        let ctx = WorkerCtx {
+            top: top.clone(),
+            shared: shared.clone(),
+            mode: opts.miss_mode,
+            tiles_in_progress: 1 + opts.tiles_ahead,
+            stop: stop.clone(),
+            results: done_tx.clone(),
+        };
+        let h = std::thread::Builder::new()
+            .name(format!("render-{i}"))
+            .spawn(move || render_thread(ctx, i, rx))
+            .map_err(|source| ActorError::Io {
+                actor: actor.clone(),
+                path: format!("render thread {i}"),
+                source,
+            })?;
+        queues.push(tx);
+        handles.push(h);
+    }
+    drop((shared, done_tx));
+    let capacity = threads + opts.tiles_ahead;
+    let mut busy = vec![0usize; threads];
+    let mut outstanding = 0usize;
+    let mut scheduler_up = true;
+    let _ = results.send((
+        opts.scheduler.clone(),
+        Message::RequestWork(RequestWork {
+            slots: slots(capacity),
+        }),
+    ));
+    info!(%actor, threads, mode = ?opts.miss_mode, cache_bytes = opts.cache_bytes, "client ready");
+
+    let mut tick = tokio::time::interval(TICK);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    loop {
+        tokio::select! {
+            d = mb.recv() => match d {
+                None => break,
+                Some(Delivery::Message { from, msg }) => match msg {
+                    Message::AssignTile(a) => {
+                        let t = (0..threads).min_by_key(|&t| busy[t]).unwrap_or(0);
+                        busy[t] += 1;
+                        outstanding += 1;
+                        let _ = queues[t].send(job(a, diagonal, opts.isa));
+                    }
+                    Message::VoxelLoaded(v) => loader.loaded(from, v.id, v.data.0),
+                    Message::VoxelError(e) => loader.refused(from, e),
+                    Message::PrefetchHint(h) => loader.hint(&h.voxels.0),
+                    Message::Ping(p) => {
+                        let _ = results.send((from, Message::Pong(p)));
+                    }
+                    Message::Shutdown(s) => {
+                        info!(%actor, reason = %s.reason, "client stopping");
+                        break;
+                    }
+                    other => debug!(%actor, kind = other.kind().name(), %from, "ignored"),
+                },
+                Some(Delivery::PeerUp { node, .. }) => {
+                    if node == opts.scheduler.node && !scheduler_up {
+                        scheduler_up = true;
+                        let free = capacity.saturating_sub(outstanding);
+                        info!(%actor, free, "scheduler is back: asking for work again");
+                        if free > 0 {
+                            let _ = results.send((
+                                opts.scheduler.clone(),
+                                Message::RequestWork(RequestWork { slots: slots(free) }),
+                            ));
+                        }
+                    }
+                    loader.peer_up(&node);
+                }
+                Some(Delivery::PeerDown { node, reason }) => {
+                    if node == opts.scheduler.node {
+                        warn!(%actor, %reason, "lost the scheduler");
+                        scheduler_up = false;
+                    }
+                }
+            },
+            Some(req) = req_rx.recv() => loader.request(req),
+            Some(d) = decoded_rx.recv() => loader.decoded(d),
+            Some(r) = done_rx.recv() => {
+                busy[r.thread] = busy[r.thread].saturating_sub(1);
+                outstanding = outstanding.saturating_sub(1);
+                finish_tile(r, &opts, &results, &mut summary);
+            }
+            _ = tick.tick() => loader.tick(),
+        }
+    }
+
+    // Stop: no new tiles, every waiting packet gets an error, the threads
+    // finish what they are doing and exit.
+    stop.store(true, Ordering::Relaxed);
+    loader.stop();
+    drop(queues);
+    drop(req_rx);
+    drop(done_rx);
+    let joined = tokio::task::spawn_blocking(move || {
+        handles
+            .into_iter()
+            .map(|h| h.join().is_ok())
+            .collect::<Vec<bool>>()
+            .into_iter()
+            .all(|ok| ok)
+    })
+    .await;
+    if !matches!(joined, Ok(true)) {
+        warn!(%actor, "a render thread panicked");
+    }
+    let s = &loader.stats;
+    summary.fetched = s.fetched;
+    summary.bytes_fetched = s.bytes_fetched;
+    summary.refetched = s.refetched;
+    summary.prefetched = s.prefetched;
+    summary.evicted = cache.evicted();
+    summary.peak_cache_bytes = cache.peak_bytes();
+    info!(%actor, ?summary, retries = s.retries, "client stopped");
+    Ok(summary)
+}
+
+fn job(a: AssignTile, diagonal: f32, isa: dray_trace::render::Isa) -> TileJob {
+    TileJob {
+        frame: a.frame,
+        tile: a.tile,
+        camera: kernel_camera(&a.camera, a.width, a.height),
+        settings: Arc::new(kernel_settings(&a.settings, diagonal, 1, isa)),
+        want_depth: a.settings.want_depth,
+        want_prim_ids: a.settings.want_prim_ids,
+        assigned: std::time::Instant::now(),
+    }
+}
+
+fn finish_tile(
+    r: TileResult,
+    opts: &ClientOptions,
+    out: &mpsc::UnboundedSender<(Address, Message)>,
+    summary: &mut ClientSummary,
+) {
+    let TileResult {
+        job,
+        image,
+        bytes_fetched,
+        ..
+    } = r;
+    match image {
+        Ok(img) => {
+            let st = &img.stats;
+            let rays = st.primary_rays + st.shadow_rays + st.reflection_rays;
+            summary.tiles += 1;
+            summary.rays += rays;
+            summary.misses += st.misses;
+            let stats = TileStats {
+                rays,
+                time_us: job.assigned.elapsed().as_micros() as u64,
+                voxels_touched: st.voxels_touched,
+                misses: st.misses.min(u64::from(u32::MAX)) as u32,
+                bytes_fetched,
+                stall_us: st.stall.as_micros() as u64,
+            };
+            let pixels: Vec<u8> = img.rgba.iter().flatten().copied().collect();
+            let done = TileDone {
+                frame: job.frame,
+                tile: job.tile,
+                pixels: Blob(pixels),
+                depth: job.want_depth.then_some(PackedF32(img.depth)),
+                prim_ids: job.want_prim_ids.then_some(PackedU32(img.primid)),
+                stats,
+            };
+            let _ = out.send((opts.display.clone(), Message::TileDone(done)));
+            let report = TileReport {
+                frame: job.frame,
+                tile: job.tile,
+                stats,
+            };
+            let _ = out.send((opts.scheduler.clone(), Message::TileReport(report)));
+        }
+        Err(e) => warn!(frame = job.frame, tile = ?job.tile, error = %e, "tile failed"),
+    }
+    let _ = out.send((
+        opts.scheduler.clone(),
+        Message::RequestWork(RequestWork { slots: 1 }),
+    ));
+}

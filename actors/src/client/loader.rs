@@ -1,0 +1,454 @@
+//! The client's voxel loader: render threads ask for voxels through a
+//! channel (each request with a oneshot for the answer); the loader, run
+//! by the client's actor task, sends one [`FetchVoxel`] per voxel however
+//! many packets wait for it, at most `max_inflight` at once (the rest
+//! queue, hints last), decodes and verifies what comes back on tokio's
+//! blocking pool, puts it in the cache and answers every waiter.
+//!
+//! Faults: a blob that fails its checksum (or does not decode) is logged
+//! and fetched again; a [`VoxelError`] is retried after a short delay;
+//! after [`MAX_TRIES`] failures the waiters get a [`LoadError`]. A fetch
+//! whose store goes down is sent again when the store is back
+//! ([`Loader::peer_up`]) or when it times out ([`FETCH_TIMEOUT`]).
+
+use super::cache::VoxelCache;
+use crate::names::StoreRoutes;
+use dray_protocol::{Address, FetchVoxel, Message, Name, VoxelError};
+use dray_scene::db::manifest::{Manifest, VoxelEntry};
+use dray_scene::voxel::Voxel;
+use dray_trace::scene::{PreparedVoxel, VoxelSource};
+use dray_trace::tile::{LoadError, VoxelLoader};
+use futures::future::BoxFuture;
+use std::collections::{HashMap, VecDeque};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+use tokio::sync::{mpsc, oneshot};
+use tokio::time::{Duration, Instant};
+use tracing::{debug, warn};
+
+/// Failed attempts (bad checksum, store error) before giving up on a voxel.
+pub const MAX_TRIES: u32 = 4;
+/// A fetch unanswered this long is sent again.
+pub const FETCH_TIMEOUT: Duration = Duration::from_secs(10);
+/// Wait before asking again after a [`VoxelError`].
+pub const RETRY_DELAY: Duration = Duration::from_millis(100);
+/// Most hinted voxels waiting to be prefetched.
+pub const MAX_PREFETCH_QUEUE: usize = 16384;
+
+/// A voxel and the compressed bytes fetched for it on behalf of this
+/// request (only the request that caused the fetch is charged).
+pub(crate) type Answer = Result<(Arc<PreparedVoxel>, u64), LoadError>;
+
+/// A render thread's request.
+pub(crate) struct LoadRequest {
+    pub id: u32,
+    pub reply: oneshot::Sender<Answer>,
+}
+
+/// What the render threads share: the cache and the way to the loader.
+pub(crate) struct Shared {
+    pub cache: Arc<VoxelCache>,
+    pub requests: mpsc::UnboundedSender<LoadRequest>,
+}
+
+/// One tile's view of the loader: counts the bytes fetched for it.
+pub(crate) struct TileLoader<'a> {
+    pub shared: &'a Shared,
+    pub bytes: AtomicU64,
+}
+
+impl VoxelSource for TileLoader<'_> {
+    fn voxel(&self, id: u32) -> Option<Arc<PreparedVoxel>> {
+        self.shared.cache.get(id)
+    }
+}
+
+impl VoxelLoader for TileLoader<'_> {
+    fn load(&self, id: u32) -> BoxFuture<'_, Result<Arc<PreparedVoxel>, LoadError>> {
+        if let Some(v) = self.shared.cache.get(id) {
+            return Box::pin(std::future::ready(Ok(v)));
+        }
+        let (tx, rx) = oneshot::channel();
+        let sent = self
+            .shared
+            .requests
+            .send(LoadRequest { id, reply: tx })
+            .is_ok();
+        Box::pin(async move {
+            let stopping = || LoadError {
+                voxel: id,
+                message: "the client is stopping".into(),
+            };
+            if !sent {
+                return Err(stopping());
+            }
+            let (v, bytes) = rx.await.map_err(|_| stopping())??;
+            self.bytes.fetch_add(bytes, Ordering::Relaxed);
+            Ok(v)
+        })
+    }
+}
+
+/// A decoded voxel (or why not), from the blocking pool.
+pub(crate) struct Decoded {
+    pub id: u32,
+    pub store: Address,
+    pub bytes: u64,
+    pub result: Result<PreparedVoxel, String>,
+}
+
+/// Checks a blob against its manifest entry, decodes and prepares it.
+pub(crate) fn decode(id: u32, entry: &VoxelEntry, blob: &[u8]) -> Result<PreparedVoxel, String> {
+    if blob.len() as u64 != entry.compressed_bytes {
+        return Err(format!(
+            "{} bytes, the manifest says {}",
+            blob.len(),
+            entry.compressed_bytes
+        ));
+    }
+    if dray_scene::voxel::checksum(blob) != entry.checksum {
+        return Err("checksum mismatch".into());
+    }
+    let v = Voxel::decode(blob).map_err(|e| format!("cannot decode: {e}"))?;
+    Ok(PreparedVoxel::new(id, &v))
+}
+
+#[derive(Debug)]
+enum State {
+    /// In a queue, not sent.
+    Queued,
+    /// Asked of `store` at `sent`.
+    InFlight { store: Address, sent: Instant },
+    /// Failed; ask again at this instant.
+    Retry(Instant),
+    /// Arrived, being decoded.
+    Decoding,
+}
+
+struct Pending {
+    state: State,
+    waiters: Vec<oneshot::Sender<Answer>>,
+    failures: u32,
+    /// Asked for by a hint only (so far).
+    prefetch: bool,
+}
+
+/// Counters for the summary.
+#[derive(Clone, Debug, Default)]
+pub(crate) struct LoaderStats {
+    pub fetched: u64,
+    pub bytes_fetched: u64,
+    pub refetched: u64,
+    pub prefetched: u64,
+    pub retries: u64,
+}
+
+/// The loader's state, driven by the client's actor task.
+pub(crate) struct Loader {
+    manifest: Arc<Manifest>,
+    cache: Arc<VoxelCache>,
+    routes: StoreRoutes,
+    max_inflight: usize,
+    inflight: usize,
+    pending: HashMap<u32, Pending>,
+    queue: VecDeque<u32>,
+    hints: VecDeque<u32>,
+    ever_loaded: Vec<bool>,
+    /// Where FetchVoxel messages go out (a task that sends them in order).
+    out: mpsc::UnboundedSender<(Address, Message)>,
+    decoded: mpsc::UnboundedSender<Decoded>,
+    pub stats: LoaderStats,
+}
+
+impl Loader {
+    pub fn new(
+        manifest: Arc<Manifest>,
+        cache: Arc<VoxelCache>,
+        routes: StoreRoutes,
+        max_inflight: usize,
+        out: mpsc::UnboundedSender<(Address, Message)>,
+        decoded: mpsc::UnboundedSender<Decoded>,
+    ) -> Loader {
+        let n = manifest.voxels.len();
+        Loader {
+            manifest,
+            cache,
+            routes,
+            max_inflight: max_inflight.max(1),
+            inflight: 0,
+            pending: HashMap::new(),
+            queue: VecDeque::new(),
+            hints: VecDeque::new(),
+            ever_loaded: vec![false; n],
+            out,
+            decoded,
+            stats: LoaderStats::default(),
+        }
+    }
+
+    /// A render thread asks for a voxel.
+    pub fn request(&mut self, req: LoadRequest) {
+        let id = req.id;
+        if let Some(v) = self.cache.get(id) {
+            let _ = req.reply.send(Ok((v, 0)));
+            return;
+        }
+        if id as usize >= self.manifest.voxels.len() {
+            let _ = req.reply.send(Err(LoadError {
+                voxel: id,
+                message: format!(
+                    "no such voxel (the manifest has {})",
+                    self.manifest.voxels.len()
+                ),
+            }));
+            return;
+        }
+        match self.pending.get_mut(&id) {
+            Some(p) => {
+                p.waiters.push(req.reply);
+                if p.prefetch {
+                    p.prefetch = false;
+                    if matches!(p.state, State::Queued) {
+                        // Queued as a hint: move it ahead of the hints.
+                        self.queue.push_back(id);
+                    }
+                }
+            }
+            None => {
+                self.pending.insert(
+                    id,
+                    Pending {
+                        state: State::Queued,
+                        waiters: vec![req.reply],
+                        failures: 0,
+                        prefetch: false,
+                    },
+                );
+                self.queue.push_back(id);
+            }
+        }
+        self.pump();
+    }
+
+    /// The prefetcher hints at voxels needed soon: the newest hint
+    /// replaces older ones.
+    pub fn hint(&mut self, ids: &[u32]) {
+        self.hints.clear();
+        let n = self.manifest.voxels.len();
+        for &id in ids.iter().take(MAX_PREFETCH_QUEUE) {
+            if (id as usize) < n && !self.pending.contains_key(&id) && !self.cache.contains(id) {
+                self.hints.push_back(id);
+            }
+        }
+        self.pump();
+    }
+
+    /// Sends queued fetches while slots are free: requests first, hints
+    /// when nothing else waits.
+    fn pump(&mut self) {
+        while self.inflight < self.max_inflight {
+            if let Some(id) = self.queue.pop_front() {
+                if matches!(self.pending.get(&id), Some(p) if matches!(p.state, State::Queued)) {
+                    self.send(id);
+                }
+                continue;
+            }
+            let Some(id) = self.hints.pop_front() else {
+                break;
+            };
+            if self.pending.contains_key(&id) || self.cache.contains(id) {
+                continue;
+            }
+            self.pending.insert(
+                id,
+                Pending {
+                    state: State::Queued,
+                    waiters: Vec::new(),
+                    failures: 0,
+                    prefetch: true,
+                },
+            );
+            self.stats.prefetched += 1;
+            self.send(id);
+        }
+    }
+
+    fn send(&mut self, id: u32) {
+        let store = self.routes.store_for(id).clone();
+        if let Some(p) = self.pending.get_mut(&id) {
+            if !matches!(p.state, State::InFlight { .. }) {
+                self.inflight += 1;
+            }
+            p.state = State::InFlight {
+                store: store.clone(),
+                sent: Instant::now(),
+            };
+            let _ = self
+                .out
+                .send((store, Message::FetchVoxel(FetchVoxel { id })));
+        }
+    }
+
+    fn leave_flight(&mut self, id: u32) {
+        if let Some(p) = self.pending.get(&id) {
+            if matches!(p.state, State::InFlight { .. }) {
+                self.inflight -= 1;
+            }
+        }
+    }
+
+    /// A store sent a blob.
+    pub fn loaded(&mut self, from: Address, id: u32, blob: Vec<u8>) {
+        let Some(p) = self.pending.get(&id) else {
+            debug!(voxel = id, %from, "voxel nobody waits for (a duplicate)");
+            return;
+        };
+        if matches!(p.state, State::Decoding) {
+            debug!(voxel = id, %from, "duplicate voxel while decoding");
+            return;
+        }
+        self.leave_flight(id);
+        if let Some(p) = self.pending.get_mut(&id) {
+            p.state = State::Decoding;
+        }
+        let entry = self.manifest.voxels[id as usize];
+        let tx = self.decoded.clone();
+        tokio::task::spawn_blocking(move || {
+            let result = decode(id, &entry, &blob);
+            let _ = tx.send(Decoded {
+                id,
+                store: from,
+                bytes: blob.len() as u64,
+                result,
+            });
+        });
+        self.pump();
+    }
+
+    /// The blocking pool finished a voxel.
+    pub fn decoded(&mut self, d: Decoded) {
+        let Some(mut p) = self.pending.remove(&d.id) else {
+            return;
+        };
+        match d.result {
+            Ok(v) => {
+                let (v, freed) = self.cache.insert(Arc::new(v));
+                let _ = freed;
+                self.stats.fetched += 1;
+                self.stats.bytes_fetched += d.bytes;
+                if let Some(e) = self.ever_loaded.get_mut(d.id as usize) {
+                    if std::mem::replace(e, true) {
+                        self.stats.refetched += 1;
+                    }
+                }
+                let mut bytes = d.bytes;
+                for w in p.waiters {
+                    let _ = w.send(Ok((v.clone(), std::mem::take(&mut bytes))));
+                }
+            }
+            Err(why) => {
+                p.failures += 1;
+                warn!(voxel = d.id, store = %d.store, error = %why, tries = p.failures,
+                    "voxel failed verification; fetching it again");
+                if p.failures >= MAX_TRIES {
+                    self.fail(
+                        d.id,
+                        p,
+                        format!("{why} from {} ({MAX_TRIES} tries)", d.store),
+                    );
+                } else {
+                    self.stats.retries += 1;
+                    p.state = State::Queued;
+                    self.pending.insert(d.id, p);
+                    self.queue.push_front(d.id);
+                }
+            }
+        }
+        self.pump();
+    }
+
+    /// A store refused a voxel.
+    pub fn refused(&mut self, from: Address, e: VoxelError) {
+        let id = e.id;
+        match self.pending.get(&id) {
+            Some(p) if matches!(p.state, State::InFlight { .. }) => {}
+            _ => return,
+        }
+        self.leave_flight(id);
+        let Some(mut p) = self.pending.remove(&id) else {
+            return;
+        };
+        p.failures += 1;
+        warn!(voxel = id, store = %from, error = %e.message, tries = p.failures, "store refused a voxel");
+        if p.failures >= MAX_TRIES || p.prefetch {
+            let why = format!("{from} refused it: {}", e.message);
+            self.fail(id, p, why);
+        } else {
+            self.stats.retries += 1;
+            p.state = State::Retry(Instant::now() + RETRY_DELAY);
+            self.pending.insert(id, p);
+        }
+        self.pump();
+    }
+
+    fn fail(&mut self, id: u32, p: Pending, message: String) {
+        for w in p.waiters {
+            let _ = w.send(Err(LoadError {
+                voxel: id,
+                message: message.clone(),
+            }));
+        }
+    }
+
+    /// A store node came (back) up: fetches it never answered go again.
+    pub fn peer_up(&mut self, node: &Name) {
+        let again: Vec<u32> = self
+            .pending
+            .iter()
+            .filter(
+                |(_, p)| matches!(&p.state, State::InFlight { store, .. } if &store.node == node),
+            )
+            .map(|(&id, _)| id)
+            .collect();
+        if !again.is_empty() {
+            debug!(store = %node, fetches = again.len(), "store is back: asking again");
+        }
+        for id in again {
+            self.send(id);
+        }
+    }
+
+    /// Retries whose delay is over, fetches that timed out.
+    pub fn tick(&mut self) {
+        let now = Instant::now();
+        let mut again = Vec::new();
+        for (&id, p) in &mut self.pending {
+            match p.state {
+                State::Retry(at) if at <= now => {
+                    p.state = State::Queued;
+                    self.queue.push_back(id);
+                }
+                State::InFlight { sent, ref store } if now - sent >= FETCH_TIMEOUT => {
+                    warn!(voxel = id, %store, "fetch timed out: asking again");
+                    again.push(id);
+                }
+                _ => {}
+            }
+        }
+        for id in again {
+            self.stats.retries += 1;
+            self.send(id);
+        }
+        self.pump();
+    }
+
+    /// Answers every waiter with an error (the client stops).
+    pub fn stop(&mut self) {
+        for (id, p) in std::mem::take(&mut self.pending) {
+            self.fail(id, p, "the client is stopping".into());
+        }
+        self.queue.clear();
+        self.hints.clear();
+        self.inflight = 0;
+    }
+}

@@ -1,0 +1,171 @@
+//! The Client end to end against a real store and a fake scheduler and
+//! display: the frame it renders tile by tile, fetching voxels over a link
+//! of 5 ms latency into a cache of any size, equals `dray render`'s frame
+//! with every voxel resident, bit for bit, in suspend and block mode.
+//!
+//! These run on the real clock: the render threads are OS threads, which
+//! tokio's paused clock would not wait for.
+
+mod client_common;
+
+use client_common::*;
+use dray_actors::client::{run_client, ClientOptions, ClientSummary};
+use dray_actors::names;
+use dray_actors::Shard;
+use dray_protocol::{Message, Shutdown};
+use dray_runtime::{InProcNet, LinkShape, Role};
+use dray_trace::render::Isa;
+use dray_trace::tile::MissMode;
+use std::time::Duration;
+
+const LATENCY: Duration = Duration::from_millis(5);
+const THREADS: usize = 2;
+const TILES_AHEAD: usize = 2;
+
+struct Run {
+    out: Assembled,
+    summary: ClientSummary,
+}
+
+fn options(cache_bytes: u64, mode: MissMode, stores: usize) -> ClientOptions {
+    ClientOptions {
+        threads: THREADS,
+        cache_bytes,
+        miss_mode: mode,
+        max_inflight_fetches: 4,
+        tiles_ahead: TILES_AHEAD,
+        isa: Isa::detect(),
+        stores: routes(stores),
+        scheduler: names::scheduler(),
+        display: names::display(),
+    }
+}
+
+/// One client renders the test frame from one store.
+async fn run(db: &Db, cache_bytes: u64, mode: MissMode, hint: bool, outage: bool) -> Run {
+    let net = InProcNet::new();
+    let (_store_bus, store) = start_store(&net, 0, db.path.clone(), Shard::ALL);
+    let mut fe = FakeFrontEnd::new(&net);
+    let client_bus = net.add_node(names::client_node(0), Role::Client).unwrap();
+    let shape = LinkShape {
+        latency: LATENCY,
+        ..LinkShape::default()
+    };
+    net.set_shape(&names::client_node(0), &names::store_node(0), shape)
+        .unwrap();
+    let mb = client_bus.mailbox(name(names::CLIENT), 1024).unwrap();
+    let client = tokio::spawn(run_client(mb, options(cache_bytes, mode, 1)));
+    let cut = outage.then(|| {
+        let net = net.clone();
+        tokio::spawn(async move {
+            // Cut the store off while fetches are in flight, then bring it
+            // back: unanswered fetches must be sent again.
+            tokio::time::sleep(Duration::from_millis(60)).await;
+            net.disconnect(&names::client_node(0), &names::store_node(0));
+            tokio::time::sleep(Duration::from_millis(150)).await;
+            net.reconnect(&names::client_node(0), &names::store_node(0));
+            tokio::time::Instant::now()
+        })
+    });
+    let out = render_frame(&mut fe, &db.db, &names::client(0), hint).await;
+    let finished = tokio::time::Instant::now();
+    let summary = tokio::time::timeout(Duration::from_secs(30), client)
+        .await
+        .expect("the client stops when told")
+        .unwrap()
+        .unwrap();
+    if let Some(cut) = cut {
+        let back = cut.await.unwrap();
+        assert!(
+            finished > back,
+            "the frame was done before the store came back"
+        );
+    }
+    fe.scheduler
+        .send(
+            &names::store(0),
+            Message::Shutdown(Shutdown {
+                reason: "test over".into(),
+            }),
+        )
+        .await
+        .unwrap();
+    let served = store.await.unwrap().unwrap();
+    assert!(served.served >= summary.fetched);
+    assert!(
+        out.max_outstanding <= THREADS + TILES_AHEAD,
+        "the client asked for {} tiles at once",
+        out.max_outstanding
+    );
+    assert_eq!(summary.tiles, 24);
+    assert_eq!(out.reports, 24);
+    eprintln!("{summary:?}");
+    Run { out, summary }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn suspend_mode_with_a_cache_of_three_voxels_equals_the_reference() {
+    let db = plant_db(20_000);
+    let want = reference(&db.db);
+    let budget = 3 * mean_voxel_bytes(&db.db);
+    let r = run(&db, budget, MissMode::Suspend, false, false).await;
+    assert_same(&r.out, &want, "suspend, small cache");
+    let s = &r.summary;
+    assert!(s.evicted > 0, "{s:?}");
+    assert!(s.refetched > 0, "{s:?}");
+    assert!(s.misses > 0 && s.rays > 0, "{s:?}");
+    assert_eq!(s.prefetched, 0);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn suspend_mode_with_a_big_cache_fetches_each_voxel_once() {
+    let db = plant_db(20_000);
+    let want = reference(&db.db);
+    let r = run(&db, 1 << 30, MissMode::Suspend, false, false).await;
+    assert_same(&r.out, &want, "suspend, big cache");
+    let s = &r.summary;
+    assert_eq!(s.evicted, 0, "{s:?}");
+    assert_eq!(s.refetched, 0, "{s:?}");
+    assert!(s.fetched > 0 && s.fetched <= db.db.manifest.voxels.len() as u64);
+    assert!(s.peak_cache_bytes > 0);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn block_mode_with_a_cache_of_three_voxels_equals_the_reference() {
+    let db = plant_db(20_000);
+    let want = reference(&db.db);
+    let budget = 3 * mean_voxel_bytes(&db.db);
+    let r = run(&db, budget, MissMode::Block, false, false).await;
+    assert_same(&r.out, &want, "block, small cache");
+    assert!(r.summary.evicted > 0, "{:?}", r.summary);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn block_mode_with_a_big_cache_equals_the_reference() {
+    let db = plant_db(20_000);
+    let want = reference(&db.db);
+    let r = run(&db, 1 << 30, MissMode::Block, false, false).await;
+    assert_same(&r.out, &want, "block, big cache");
+    assert_eq!(r.summary.refetched, 0);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn hinted_voxels_are_prefetched() {
+    let db = plant_db(20_000);
+    let want = reference(&db.db);
+    let r = run(&db, 1 << 30, MissMode::Suspend, true, false).await;
+    assert_same(&r.out, &want, "prefetch");
+    let s = &r.summary;
+    assert!(s.prefetched > 0, "{s:?}");
+    assert!(s.fetched <= db.db.manifest.voxels.len() as u64, "{s:?}");
+    assert_eq!(s.refetched, 0);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_store_outage_mid_frame_is_survived() {
+    let db = plant_db(20_000);
+    let want = reference(&db.db);
+    let budget = 3 * mean_voxel_bytes(&db.db);
+    let r = run(&db, budget, MissMode::Suspend, false, true).await;
+    assert_same(&r.out, &want, "store outage");
+}
