@@ -2,7 +2,10 @@
 
 use anyhow::{bail, Context, Result};
 use clap::{Parser, Subcommand};
+use dray_actors::cluster::{NodeOutcome, RunOptions};
+use dray_actors::display::path::CameraPath;
 use dray_protocol::Reflective;
+use dray_protocol::Role;
 use dray_scene::db::info::DbInfo;
 use dray_scene::db::verify::verify;
 use dray_scene::db::Database;
@@ -13,9 +16,6 @@ use dray_trace::camera::Camera;
 use dray_trace::render::{render_repeated, Isa, RenderSettings};
 use dray_trace::scene::{ResidentSource, TopLevel};
 use glam::Vec3;
-use dray_actors::cluster::{NodeOutcome, RunOptions};
-use dray_actors::display::path::CameraPath;
-use dray_protocol::Role;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
@@ -459,9 +459,8 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 extra.extend(["--isa".to_string(), isa.name().to_string()]);
             }
             let exe = std::env::current_exe().context("finding the dray binary")?;
-            let report = runtime()?.block_on(dray_actors::launch::cluster(
-                &exe, &config, &cfg, &extra,
-            ))?;
+            let report =
+                runtime()?.block_on(dray_actors::launch::cluster(&exe, &config, &cfg, &extra))?;
             print_report(&report.summary, &report.events, json);
         }
         Command::Node {
@@ -475,7 +474,8 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 isa,
                 ..RunOptions::default()
             };
-            let outcome = runtime()?.block_on(dray_actors::cluster::node(&cfg, role, index, &opts))?;
+            let outcome =
+                runtime()?.block_on(dray_actors::cluster::node(&cfg, role, index, &opts))?;
             if let NodeOutcome::Display(summary) = outcome {
                 println!("summary {}", summary.to_json());
             }

@@ -28,10 +28,16 @@ fn check_frames(cfg: &dray_config::Config, clients: u32) {
     for (img, cam) in run.display.images.iter().zip(&cameras) {
         let (rgba, depth, primid) = reference(cfg, cam);
         let what = format!("frame {} with {clients} clients", img.frame);
-        assert_eq!(img.primid.as_ref().unwrap(), &primid, "{what}: primitive ids");
+        assert_eq!(
+            img.primid.as_ref().unwrap(),
+            &primid,
+            "{what}: primitive ids"
+        );
         let d = img.depth.as_ref().unwrap();
         assert!(
-            d.iter().zip(&depth).all(|(a, b)| a.to_bits() == b.to_bits()),
+            d.iter()
+                .zip(&depth)
+                .all(|(a, b)| a.to_bits() == b.to_bits()),
             "{what}: depth"
         );
         assert!(img.rgba == rgba, "{what}: colors");
@@ -78,7 +84,12 @@ fn eight_clients_with_tiny_caches_and_5ms_links_finish_a_walkthrough() {
     let run = rt().block_on(sim(&cfg, &RunOptions::default())).unwrap();
     assert_eq!(run.display.frames.len(), 6);
     for m in &run.display.frames {
-        assert_eq!(m.tiles as usize, (96usize / 16) * (64 / 16), "frame {}", m.frame);
+        assert_eq!(
+            m.tiles as usize,
+            (96usize / 16) * (64 / 16),
+            "frame {}",
+            m.frame
+        );
     }
     // The caches were too small for the walk: voxels were evicted and
     // fetched again.
@@ -110,8 +121,11 @@ fn config_mistakes_stop_startup_naming_the_key() {
     assert!(err.contains("scene.database"), "{err}");
     assert!(err.contains("nothing-here.vdb"), "{err}");
     // A bad address is refused when the config is read.
-    let text = config_text(&missing, &path, dir.path(), 1, 16.0, "", "")
-        .replacen("address = \"127.0.0.1:", "address = \"127.0.0.1:x", 1);
+    let text = config_text(&missing, &path, dir.path(), 1, 16.0, "", "").replacen(
+        "address = \"127.0.0.1:",
+        "address = \"127.0.0.1:x",
+        1,
+    );
     let err = dray_config::Config::parse(&text).unwrap_err().to_string();
     assert!(err.contains("scheduler.address"), "{err}");
 }

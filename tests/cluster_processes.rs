@@ -93,7 +93,7 @@ fn setup(frames: u32, clients: u32) -> (tempfile::TempDir, std::path::PathBuf) {
     let path = dir.path().join("walk.toml");
     write_path(&db, &path, frames);
     let links = "[links.client_store]\nlatency_ms = 2.0\n";
-    let text = config_text(&db, &path, dir.path(), clients, 0.3, "", links)
+    let text = config_text(&db, &path, dir.path(), clients, 8.0, "", links)
         .replace("width = 96\nheight = 64", "width = 192\nheight = 128");
     let (p, _) = config(dir.path(), &text);
     (dir, p)
@@ -101,12 +101,14 @@ fn setup(frames: u32, clients: u32) -> (tempfile::TempDir, std::path::PathBuf) {
 
 #[test]
 fn killing_a_client_mid_walkthrough_loses_no_tile() {
-    let (_dir, config) = setup(30, 3);
+    let (_dir, config) = setup(20, 3);
     let (child, rx) = start_cluster(&config);
-    let lines = until(&rx, |l| l.starts_with("all ") && l.ends_with("nodes joined"));
+    let lines = until(&rx, |l| {
+        l.starts_with("all ") && l.ends_with("nodes joined")
+    });
     kill(pid_of(&lines, "client-1"));
     let summary = finish(child, &rx);
-    assert_eq!(frames_done(&summary), 30, "{summary:#}");
+    assert_eq!(frames_done(&summary), 20, "{summary:#}");
     for f in summary["frames"].as_array().unwrap() {
         assert_eq!(f["tiles"], 12 * 8, "{f}");
     }
@@ -114,21 +116,25 @@ fn killing_a_client_mid_walkthrough_loses_no_tile() {
 
 #[test]
 fn a_store_that_dies_is_restarted_and_the_walk_completes() {
-    let (_dir, config) = setup(30, 2);
+    let (_dir, config) = setup(20, 2);
     let (child, rx) = start_cluster(&config);
-    let lines = until(&rx, |l| l.starts_with("all ") && l.ends_with("nodes joined"));
+    let lines = until(&rx, |l| {
+        l.starts_with("all ") && l.ends_with("nodes joined")
+    });
     kill(pid_of(&lines, "store-0"));
     let summary = finish(child, &rx);
-    assert_eq!(frames_done(&summary), 30, "{summary:#}");
+    assert_eq!(frames_done(&summary), 20, "{summary:#}");
 }
 
 #[test]
 fn a_stranger_certificate_is_refused_and_the_cluster_goes_on() {
-    let (dir, config) = setup(60, 2);
+    let (dir, config) = setup(40, 2);
     let cfg = dray_config::Config::load(&config).unwrap();
     let scheduler = cfg.scheduler_addr().unwrap();
     let (child, rx) = start_cluster(&config);
-    until(&rx, |l| l.starts_with("all ") && l.ends_with("nodes joined"));
+    until(&rx, |l| {
+        l.starts_with("all ") && l.ends_with("nodes joined")
+    });
     // Another CA's certificate, under the name of a real client.
     let other = dir.path().join("other-ca");
     init_cluster(&other, &["client-0"]).unwrap();
@@ -151,5 +157,5 @@ fn a_stranger_certificate_is_refused_and_the_cluster_goes_on() {
     });
     assert!(refused, "the scheduler accepted a stranger");
     let summary = finish(child, &rx);
-    assert_eq!(frames_done(&summary), 60, "{summary:#}");
+    assert_eq!(frames_done(&summary), 40, "{summary:#}");
 }

@@ -33,7 +33,6 @@ use dray_runtime::relay::UdpRelay;
 use dray_runtime::{Bus, InProcNet, LinkShape, Mailbox};
 use dray_trace::render::Isa;
 use std::net::SocketAddr;
-use std::path::PathBuf;
 use std::time::Duration;
 use tokio::task::JoinHandle;
 use tracing::{info, warn};
@@ -133,7 +132,10 @@ pub fn frame_cameras(cfg: &Config) -> Result<Vec<Camera>, ClusterError> {
                 .cameras();
             Ok(once.repeat(cfg.render.loops as usize))
         }
-        None => Ok(vec![wire_camera(&cfg.render.camera); cfg.render.frames as usize]),
+        None => Ok(vec![
+            wire_camera(&cfg.render.camera);
+            cfg.render.frames as usize
+        ]),
     }
 }
 
@@ -176,12 +178,15 @@ fn client_options(cfg: &Config, opts: &RunOptions) -> Result<ClientOptions, Clus
 
 fn display_options(cfg: &Config, opts: &RunOptions) -> Result<DisplayOptions, ClusterError> {
     let web = match &cfg.display.web {
-        Some(w) => Some(w.parse::<SocketAddr>().map_err(|_| {
-            dray_config::ConfigError::Invalid {
-                key: "display.web".into(),
-                problem: format!("{w:?} is not IP:PORT"),
-            }
-        })?),
+        Some(w) => {
+            Some(
+                w.parse::<SocketAddr>()
+                    .map_err(|_| dray_config::ConfigError::Invalid {
+                        key: "display.web".into(),
+                        problem: format!("{w:?} is not IP:PORT"),
+                    })?,
+            )
+        }
         None => None,
     };
     Ok(DisplayOptions {
@@ -409,7 +414,7 @@ pub fn node_name(role: Role, index: usize) -> Result<Name, String> {
 #[derive(Debug)]
 pub enum NodeOutcome {
     /// The display's run.
-    Display(DisplaySummary),
+    Display(Box<DisplaySummary>),
     /// Another node stopped when told to.
     Stopped,
 }
@@ -551,7 +556,10 @@ pub async fn node(
         _ => Vec::new(),
     };
     for (peer, addr, l) in dials {
-        links.dial(peer, addr, &l).await.map_err(|m| node_err(&me, m))?;
+        links
+            .dial(peer, addr, &l)
+            .await
+            .map_err(|m| node_err(&me, m))?;
     }
     for peer in links.dialed.clone() {
         wait_logged(&bus, &peer).await;
@@ -648,7 +656,7 @@ async fn run_role(
             // Give the shutdown messages time to leave before the
             // transport closes.
             tokio::time::sleep(Duration::from_millis(200)).await;
-            Ok(NodeOutcome::Display(summary?))
+            Ok(NodeOutcome::Display(Box::new(summary?)))
         }
         (role, _) => Err(ClusterError::Node {
             node: bus.node().to_string(),

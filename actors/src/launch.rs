@@ -114,7 +114,12 @@ fn tail_text(p: &Proc) -> String {
     }
 }
 
-fn spawn(exe: &Path, p: &mut Proc, idx: usize, tx: &mpsc::Sender<Event>) -> Result<(), LaunchError> {
+fn spawn(
+    exe: &Path,
+    p: &mut Proc,
+    idx: usize,
+    tx: &mpsc::Sender<Event>,
+) -> Result<(), LaunchError> {
     let mut child = Command::new(exe)
         .args(&p.args)
         .stdin(Stdio::null())
@@ -265,18 +270,25 @@ pub async fn cluster(
                 }
                 let mut fatal = None;
                 for i in 0..procs.len() {
+                    if procs[i].done {
+                        continue;
+                    }
                     let exited = match procs[i].child.as_mut() {
-                        Some(c) if !procs[i].done => c.try_wait().ok().flatten(),
-                        _ => None,
+                        Some(c) => c.try_wait().ok().flatten(),
+                        None => None,
                     };
                     let Some(status) = exited else { continue };
                     procs[i].done = true;
                     let name = procs[i].name.clone();
-                    if i == display && status.success() {
+                    // Exiting cleanly is what a node does when the display
+                    // tells it the run is over.
+                    if status.success() {
                         continue;
                     }
                     let what = status_text(&status);
-                    if name.starts_with("client-") {
+                    if summary.is_some() {
+                        events.push(format!("{name} ended with {what} after the run"));
+                    } else if name.starts_with("client-") {
                         let alive = procs.iter().filter(|p| p.name.starts_with("client-") && !p.done).count();
                         let e = format!("{name} died ({what}); {alive} clients go on and take its tiles");
                         eprintln!("cluster: {e}");
@@ -300,7 +312,13 @@ pub async fn cluster(
                     break Err(f);
                 }
                 if procs[display].done {
-                    break Ok(());
+                    let status = procs[display].child.as_mut().and_then(|c| c.try_wait().ok().flatten());
+                    match status {
+                        Some(s) if !s.success() => {
+                            break Err(LaunchError::Died { node: "display".into(), status: status_text(&s), log: tail_text(&procs[display]) });
+                        }
+                        _ => break Ok(()),
+                    }
                 }
             }
             _ = tokio::signal::ctrl_c() => break Err(LaunchError::Interrupted),
