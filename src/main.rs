@@ -477,7 +477,9 @@ fn run(cli: Cli) -> Result<ExitCode> {
             let outcome =
                 runtime()?.block_on(dray_actors::cluster::node(&cfg, role, index, &opts))?;
             if let NodeOutcome::Display(summary) = outcome {
-                println!("summary {}", summary.to_json());
+                let mut json = summary.to_json();
+                json["text"] = summary.print_text().into();
+                println!("summary {json}");
             }
         }
         Command::Sim {
@@ -494,6 +496,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
             };
             let run = runtime()?.block_on(dray_actors::cluster::sim(&cfg, &opts))?;
             let mut summary = run.display.to_json();
+            summary["text"] = run.display.print_text().into();
             summary["clients"] = run
                 .clients
                 .iter()

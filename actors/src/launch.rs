@@ -120,7 +120,12 @@ fn spawn(
     idx: usize,
     tx: &mpsc::Sender<Event>,
 ) -> Result<(), LaunchError> {
-    let mut child = Command::new(exe)
+    let mut cmd = Command::new(exe);
+    if std::env::var_os("RUST_LOG").is_none() {
+        // The nodes' routine info lines would drown the summary.
+        cmd.env("RUST_LOG", "warn");
+    }
+    let mut child = cmd
         .args(&p.args)
         .stdin(Stdio::null())
         .stdout(Stdio::piped())
@@ -228,9 +233,19 @@ pub async fn cluster(
     for i in 0..clients {
         procs.push(proc_for("client", Some(i)));
     }
+    // Start in stages, each once the one before is ready, so that nobody
+    // dials a node that is not listening yet: the stores, the scheduler
+    // (which dials the stores), then the display and the clients (the
+    // display is ready once every client has joined).
+    let mut stages: VecDeque<Vec<usize>> = VecDeque::from([
+        (0..cfg.stores.len()).collect(),
+        vec![display - 1],
+        (display..procs.len()).collect(),
+    ]);
     let (tx, mut rx) = mpsc::channel::<Event>(1024);
-    for (i, p) in procs.iter_mut().enumerate() {
-        spawn(exe, p, i, &tx)?;
+    let mut current = stages.pop_front().unwrap_or_default();
+    for &i in &current {
+        spawn(exe, &mut procs[i], i, &tx)?;
     }
     let mut events = Vec::new();
     let mut summary = None;
@@ -243,6 +258,15 @@ pub async fn cluster(
                 Some(Event::Line { node, line }) => {
                     if line.starts_with("ready ") {
                         procs[node].ready = true;
+                        while current.iter().all(|&i| procs[i].ready) {
+                            let Some(next) = stages.pop_front() else { break };
+                            for &i in &next {
+                                if let Err(e) = spawn(exe, &mut procs[i], i, &tx) {
+                                    return Err(e);
+                                }
+                            }
+                            current = next;
+                        }
                         if !all_ready && procs.iter().all(|p| p.ready) {
                             all_ready = true;
                             println!("all {} nodes joined", procs.len());

@@ -158,7 +158,12 @@ impl Inner {
             }
         };
         if removed {
-            warn!(local = %self.node, peer = %node, %reason, "peer down");
+            // A connection closed on purpose (a node stopping) is routine.
+            if reason.starts_with("closed") {
+                debug!(local = %self.node, peer = %node, %reason, "peer down");
+            } else {
+                warn!(local = %self.node, peer = %node, %reason, "peer down");
+            }
             self.peers_changed.notify_waiters();
             self.broadcast(Delivery::PeerDown {
                 node: node.clone(),

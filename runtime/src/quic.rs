@@ -402,7 +402,12 @@ impl QuicTransport {
                     error!(error = %e, "giving up on this peer");
                     return;
                 }
-                Err(e) => warn!(error = %e, retry_in = ?backoff, "dial failed"),
+                // A peer that is starting or stopping refuses for a moment;
+                // only a failure that lasts is worth a warning.
+                Err(e) if backoff >= Duration::from_secs(1) => {
+                    warn!(error = %e, retry_in = ?backoff, "dial failed")
+                }
+                Err(e) => debug!(error = %e, retry_in = ?backoff, "dial failed"),
             }
             if self.stopping() {
                 break;

@@ -306,7 +306,11 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
                 }
                 Some(Delivery::PeerDown { node, reason }) => {
                     if node == opts.scheduler.node {
-                        warn!(%actor, %reason, "lost the scheduler");
+                        if reason.starts_with("closed") {
+                            info!(%actor, %reason, "the scheduler stopped");
+                        } else {
+                            warn!(%actor, %reason, "lost the scheduler");
+                        }
                         scheduler_up = false;
                     }
                 }
