@@ -261,9 +261,7 @@ pub async fn cluster(
                         while current.iter().all(|&i| procs[i].ready) {
                             let Some(next) = stages.pop_front() else { break };
                             for &i in &next {
-                                if let Err(e) = spawn(exe, &mut procs[i], i, &tx) {
-                                    return Err(e);
-                                }
+                                spawn(exe, &mut procs[i], i, &tx)?;
                             }
                             current = next;
                         }
