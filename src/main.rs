@@ -474,8 +474,14 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 isa,
                 ..RunOptions::default()
             };
-            let outcome =
-                runtime()?.block_on(dray_actors::cluster::node(&cfg, role, index, &opts))?;
+            // One thread for the node's actors and transport: render threads
+            // and blocking work have their own threads, and a single
+            // scheduler thread saves the cross-thread wakeups of a pool.
+            let rt = tokio::runtime::Builder::new_current_thread()
+                .enable_all()
+                .build()
+                .context("starting the async runtime")?;
+            let outcome = rt.block_on(dray_actors::cluster::node(&cfg, role, index, &opts))?;
             if let NodeOutcome::Display(summary) = outcome {
                 let mut json = summary.to_json();
                 json["text"] = summary.print_text().into();

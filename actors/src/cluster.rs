@@ -196,6 +196,7 @@ fn display_options(cfg: &Config, opts: &RunOptions) -> Result<DisplayOptions, Cl
         cameras: frame_cameras(cfg)?,
         frames_ahead: cfg.display.frames_ahead as usize,
         output: cfg.display.output.clone(),
+        save_frames: cfg.display.save_frames,
         keep_frames: opts.keep_frames,
         web,
     })

@@ -121,6 +121,7 @@ fn start(frames: usize, ahead: usize, output: Option<std::path::PathBuf>) -> Clu
         cameras: (0..frames).map(camera).collect(),
         frames_ahead: ahead,
         output,
+        save_frames: true,
         keep_frames: true,
         web: None,
     };

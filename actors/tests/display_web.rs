@@ -26,69 +26,8 @@ async fn get(addr: SocketAddr, path: &str) -> (u16, String, Vec<u8>) {
     request(addr, req.as_bytes()).await
 }
 
-fn be32(b: &[u8]) -> u32 {
-    u32::from_be_bytes(b[..4].try_into().unwrap())
-}
-
-/// A strict PNG reader for what the viewer writes (RGBA8, zlib stored
-/// blocks, filter 0): checks every CRC and the Adler-32.
 fn decode_png(png: &[u8]) -> (u32, u32, Vec<[u8; 4]>) {
-    assert_eq!(&png[..8], b"\x89PNG\r\n\x1a\n", "signature");
-    let mut at = 8;
-    let (mut w, mut h, mut idat) = (0, 0, Vec::new());
-    let mut seen_end = false;
-    while at < png.len() {
-        let len = be32(&png[at..]) as usize;
-        let kind = &png[at + 4..at + 8];
-        let data = &png[at + 8..at + 8 + len];
-        let crc = be32(&png[at + 8 + len..]);
-        assert_eq!(
-            crc,
-            dray_actors::display::web::crc32(&[kind, data]),
-            "chunk CRC"
-        );
-        match kind {
-            b"IHDR" => {
-                w = be32(data);
-                h = be32(&data[4..]);
-                assert_eq!(&data[8..13], &[8, 6, 0, 0, 0], "RGBA8");
-            }
-            b"IDAT" => idat.extend_from_slice(data),
-            b"IEND" => seen_end = true,
-            _ => {}
-        }
-        at += 12 + len;
-    }
-    assert!(seen_end);
-    // zlib: header, stored blocks, Adler-32.
-    assert_eq!((u16::from(idat[0]) << 8 | u16::from(idat[1])) % 31, 0);
-    let mut raw = Vec::new();
-    let mut p = 2;
-    loop {
-        let last = idat[p] & 1 == 1;
-        assert_eq!(idat[p] >> 1 & 3, 0, "stored block");
-        let len = u16::from_le_bytes([idat[p + 1], idat[p + 2]]) as usize;
-        let nlen = u16::from_le_bytes([idat[p + 3], idat[p + 4]]);
-        assert_eq!(!nlen as usize, len);
-        raw.extend_from_slice(&idat[p + 5..p + 5 + len]);
-        p += 5 + len;
-        if last {
-            break;
-        }
-    }
-    let (mut a, mut b) = (1u32, 0u32);
-    for &x in &raw {
-        a = (a + u32::from(x)) % 65521;
-        b = (b + a) % 65521;
-    }
-    assert_eq!(be32(&idat[p..]), b << 16 | a, "adler32");
-    let mut px = Vec::new();
-    for row in raw.chunks((w * 4 + 1) as usize) {
-        assert_eq!(row[0], 0, "filter none");
-        px.extend(row[1..].chunks(4).map(|c| [c[0], c[1], c[2], c[3]]));
-    }
-    assert_eq!(px.len(), (w * h) as usize);
-    (w, h, px)
+    dray_trace::image::decode_png(png).expect("a valid PNG")
 }
 
 #[tokio::test]
@@ -232,6 +171,7 @@ async fn display_web_viewer_shows_the_displays_latest_frame() {
             cameras: vec![cam; 3],
             frames_ahead: 1,
             output: None,
+            save_frames: true,
             keep_frames: false,
             web: Some(addr),
         },

@@ -277,6 +277,9 @@ pub struct DisplayConfig {
     /// Directory for PNG frames and the metrics CSV; none: not written.
     #[serde(default)]
     pub output: Option<PathBuf>,
+    /// Write every frame as a PNG under `output` (else only the metrics).
+    #[serde(default = "yes")]
+    pub save_frames: bool,
     /// Frames in flight: the display sends the camera of frame k+n while
     /// frame k is not yet complete (double buffering at 2).
     #[serde(default = "default_frames_ahead")]

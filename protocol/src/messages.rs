@@ -153,8 +153,10 @@ pub struct TileStats {
     pub misses: u32,
     /// Bytes of voxels fetched for this tile.
     pub bytes_fetched: u64,
-    /// Time the tile had no packet to trace because every one waited for
-    /// a voxel, microseconds.
+    /// Render thread stall charged to this tile, microseconds: the time
+    /// its thread waited while every tile it had in progress waited for
+    /// voxels, since the thread's previous tile finished (so the sum over
+    /// tiles is the threads' stall time).
     pub stall_us: u64,
 }
 
@@ -222,7 +224,7 @@ pub struct ClientFrameStats {
     pub misses: u64,
     /// Voxel bytes it fetched.
     pub bytes_fetched: u64,
-    /// Its tiles' stall time, microseconds.
+    /// Its render threads' stall time, microseconds.
     pub stall_us: u64,
 }
 
@@ -243,7 +245,7 @@ pub struct FrameStats {
     pub bytes_fetched: u64,
     /// Distinct voxels entered, summed over tiles (for the cache hit rate).
     pub voxels_touched: u64,
-    /// Tiles' stall time, summed, microseconds.
+    /// Render threads' stall time, summed over clients, microseconds.
     pub stall_us: u64,
     /// Per client.
     pub clients: BoundedVec<ClientFrameStats, MAX_STATS_CLIENTS>,

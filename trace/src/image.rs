@@ -135,17 +135,43 @@ pub fn read_u32(path: &Path) -> Result<Vec<u32>, ImageError> {
         .collect())
 }
 
+fn png_to(out: impl io::Write, width: u32, height: u32, rgba: &[[u8; 4]]) -> io::Result<()> {
+    let mut enc = png::Encoder::new(out, width, height);
+    enc.set_color(png::ColorType::Rgba);
+    enc.set_depth(png::BitDepth::Eight);
+    let mut w = enc.write_header().map_err(io::Error::other)?;
+    w.write_image_data(rgba.as_flattened())
+        .map_err(io::Error::other)?;
+    w.finish().map_err(io::Error::other)
+}
+
 /// Writes an 8-bit RGBA PNG.
 pub fn write_png(path: &Path, width: u32, height: u32, rgba: &[[u8; 4]]) -> Result<(), ImageError> {
-    write_atomic(path, |out| {
-        let mut enc = png::Encoder::new(out, width, height);
-        enc.set_color(png::ColorType::Rgba);
-        enc.set_depth(png::BitDepth::Eight);
-        let mut w = enc.write_header().map_err(io::Error::other)?;
-        w.write_image_data(rgba.as_flattened())
-            .map_err(io::Error::other)?;
-        w.finish().map_err(io::Error::other)
-    })
+    write_atomic(path, |out| png_to(out, width, height, rgba))
+}
+
+/// An 8-bit RGBA PNG in memory (`rgba` must hold `width * height` pixels).
+pub fn encode_png(width: u32, height: u32, rgba: &[[u8; 4]]) -> io::Result<Vec<u8>> {
+    let mut out = Vec::new();
+    png_to(&mut out, width, height, rgba)?;
+    Ok(out)
+}
+
+/// Reads an 8-bit RGBA PNG from memory: width, height and pixels.
+pub fn decode_png(bytes: &[u8]) -> io::Result<(u32, u32, Vec<[u8; 4]>)> {
+    let dec = png::Decoder::new(io::Cursor::new(bytes));
+    let mut reader = dec.read_info().map_err(io::Error::other)?;
+    let mut buf = vec![0; reader.output_buffer_size()];
+    let info = reader.next_frame(&mut buf).map_err(io::Error::other)?;
+    if info.color_type != png::ColorType::Rgba || info.bit_depth != png::BitDepth::Eight {
+        return Err(io::Error::other("not an 8-bit RGBA PNG"));
+    }
+    buf.truncate(info.buffer_size());
+    let px = buf
+        .chunks_exact(4)
+        .map(|c| [c[0], c[1], c[2], c[3]])
+        .collect();
+    Ok((info.width, info.height, px))
 }
 
 /// A grey PNG of the depth (near bright, far dark, misses black), for a

@@ -378,6 +378,7 @@ fn finish_tile(
         job,
         image,
         bytes_fetched,
+        stall,
         ..
     } = r;
     match image {
@@ -393,7 +394,7 @@ fn finish_tile(
                 voxels_touched: st.voxels_touched,
                 misses: st.misses.min(u64::from(u32::MAX)) as u32,
                 bytes_fetched,
-                stall_us: st.stall.as_micros() as u64,
+                stall_us: stall.as_micros() as u64,
             };
             let pixels: Vec<u8> = img.rgba.iter().flatten().copied().collect();
             let done = TileDone {

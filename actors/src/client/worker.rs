@@ -12,6 +12,8 @@ use dray_trace::scene::TopLevel;
 use dray_trace::tile::{render_tile, LoadError, MissMode, Rect, TileImage};
 use futures::future::{select, Either};
 use futures::stream::{FuturesUnordered, StreamExt};
+use std::cell::Cell;
+use std::rc::Rc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::Instant;
@@ -36,6 +38,11 @@ pub(crate) struct TileResult {
     pub image: Result<TileImage, LoadError>,
     /// Compressed voxel bytes fetched on this tile's behalf.
     pub bytes_fetched: u64,
+    /// The thread's stall time charged to this tile: time the thread
+    /// waited while every tile it had in progress waited for voxels, since
+    /// its previous tile finished. Summed over tiles it is the thread's
+    /// stall time (tiles in progress together are not counted twice).
+    pub stall: std::time::Duration,
 }
 
 /// What a render thread needs.
@@ -73,6 +80,29 @@ async fn run_job(ctx: &WorkerCtx, index: usize, job: TileJob) -> TileResult {
         job,
         image,
         bytes_fetched: loader.bytes.load(Ordering::Relaxed),
+        stall: std::time::Duration::ZERO,
+    }
+}
+
+/// A tile's future that adds the time spent polling it (tracing) to a
+/// counter of its thread, so that the thread can tell its waits from its
+/// work.
+struct Timed<F> {
+    inner: std::pin::Pin<Box<F>>,
+    traced: Rc<Cell<std::time::Duration>>,
+}
+
+impl<F: std::future::Future> std::future::Future for Timed<F> {
+    type Output = F::Output;
+
+    fn poll(
+        mut self: std::pin::Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+    ) -> std::task::Poll<F::Output> {
+        let start = Instant::now();
+        let r = self.inner.as_mut().poll(cx);
+        self.traced.set(self.traced.get() + start.elapsed());
+        r
     }
 }
 
@@ -91,11 +121,21 @@ pub(crate) fn render_thread(
     futures::executor::block_on(async move {
         let mut running = FuturesUnordered::new();
         let mut open = true;
+        // Stall: waiting with tiles in progress (all of them blocked on
+        // voxels); waiting with none is idleness, not stall.
+        let mut stalled = std::time::Duration::ZERO;
+        let mut charged = std::time::Duration::ZERO;
+        let traced = Rc::new(Cell::new(std::time::Duration::ZERO));
+        let (mut traced_total, mut idle) = (std::time::Duration::ZERO, std::time::Duration::ZERO);
+        let start_job = |job| Timed {
+            inner: Box::pin(run_job(ctx, index, job)),
+            traced: traced.clone(),
+        };
         loop {
             // Take what is waiting, up to the limit.
             while open && running.len() < limit {
                 match tiles.try_recv() {
-                    Ok(job) => running.push(run_job(ctx, index, job)),
+                    Ok(job) => running.push(start_job(job)),
                     Err(mpsc::error::TryRecvError::Empty) => break,
                     Err(mpsc::error::TryRecvError::Disconnected) => open = false,
                 }
@@ -108,6 +148,9 @@ pub(crate) fn render_thread(
                 Job(Option<TileJob>),
                 Idle,
             }
+            let busy = !running.is_empty();
+            let waited = Instant::now();
+            traced.set(std::time::Duration::ZERO);
             let event = if running.is_empty() {
                 if !open {
                     break;
@@ -127,14 +170,32 @@ pub(crate) fn render_thread(
                     None => Event::Idle,
                 }
             };
+            let spent = traced.take();
+            traced_total += spent;
+            if busy {
+                // Polling the tiles traces their ready packets; what is
+                // left of the wait is time with nothing runnable.
+                stalled += waited.elapsed().saturating_sub(spent);
+            } else {
+                idle += waited.elapsed();
+            }
             match event {
-                Event::Done(r) => {
+                Event::Done(mut r) => {
+                    r.stall = stalled - charged;
+                    charged = stalled;
                     let _ = ctx.results.send(r);
                 }
-                Event::Job(Some(job)) => running.push(run_job(ctx, index, job)),
+                Event::Job(Some(job)) => running.push(start_job(job)),
                 Event::Job(None) => open = false,
                 Event::Idle => {}
             }
         }
+        tracing::info!(
+            thread = index,
+            traced_s = traced_total.as_secs_f64(),
+            stalled_s = stalled.as_secs_f64(),
+            idle_s = idle.as_secs_f64(),
+            "render thread done"
+        );
     });
 }

@@ -64,6 +64,9 @@ pub struct DisplayOptions {
     /// Where `frames/frame-NNNNN.png` and `metrics.csv` go (created if
     /// missing).
     pub output: Option<PathBuf>,
+    /// Write each frame's PNG (and depth and ids) under `output`; without
+    /// it only `metrics.csv` is written.
+    pub save_frames: bool,
     /// Keep the images in the summary.
     pub keep_frames: bool,
     /// Serve the live web viewer there.
@@ -80,20 +83,77 @@ fn io_err(path: &Path, source: std::io::Error) -> ActorError {
     }
 }
 
+/// Frame files being written at once; the display waits for the oldest
+/// beyond this, so a slow disk slows it down instead of filling memory.
+const MAX_PENDING_WRITES: usize = 4;
+
 /// Files of a run.
 struct Output {
-    frames_dir: PathBuf,
+    /// Where frame files go; `None`: only the metrics are written.
+    frames_dir: Option<PathBuf>,
     csv: CsvLog,
+    /// Frame files being written, oldest first. PNG encoding of a big
+    /// frame takes milliseconds: it runs off the display's loop, which
+    /// goes on receiving tiles meanwhile.
+    pending: std::collections::VecDeque<tokio::task::JoinHandle<Result<(), ActorError>>>,
 }
 
 impl Output {
-    fn create(dir: &Path) -> Result<Output, ActorError> {
-        let frames_dir = dir.join("frames");
-        std::fs::create_dir_all(&frames_dir).map_err(|e| io_err(&frames_dir, e))?;
+    fn create(dir: &Path, save_frames: bool) -> Result<Output, ActorError> {
+        let frames_dir = if save_frames {
+            let d = dir.join("frames");
+            std::fs::create_dir_all(&d).map_err(|e| io_err(&d, e))?;
+            Some(d)
+        } else {
+            std::fs::create_dir_all(dir).map_err(|e| io_err(dir, e))?;
+            None
+        };
         let csv_path = dir.join("metrics.csv");
         let csv = CsvLog::create(&csv_path).map_err(|e| io_err(&csv_path, e))?;
-        Ok(Output { frames_dir, csv })
+        Ok(Output {
+            frames_dir,
+            csv,
+            pending: Default::default(),
+        })
     }
+
+    /// Starts writing a frame's files.
+    async fn write(
+        &mut self,
+        width: u32,
+        height: u32,
+        image: FrameImage,
+    ) -> Result<(), ActorError> {
+        let Some(dir) = self.frames_dir.clone() else {
+            return Ok(());
+        };
+        self.pending.push_back(tokio::task::spawn_blocking(move || {
+            write_frame_files(&dir, width, height, &image)
+        }));
+        while self.pending.len() > MAX_PENDING_WRITES {
+            if let Some(oldest) = self.pending.pop_front() {
+                joined_write(oldest).await?;
+            }
+        }
+        Ok(())
+    }
+
+    /// Waits for every file being written.
+    async fn flush(&mut self) -> Result<(), ActorError> {
+        while let Some(w) = self.pending.pop_front() {
+            joined_write(w).await?;
+        }
+        Ok(())
+    }
+}
+
+async fn joined_write(
+    h: tokio::task::JoinHandle<Result<(), ActorError>>,
+) -> Result<(), ActorError> {
+    h.await.map_err(|e| ActorError::Peer {
+        actor: ACTOR.into(),
+        message: format!("writing a frame failed: {e}"),
+    })?
 }
 
 /// Writes a frame's files (PNG, and depth and ids when present).
@@ -225,23 +285,25 @@ impl Display {
             v.publish(w, h, &image, &m);
         }
         let keep = self.opts.keep_frames;
-        let image = if let Some(out) = &mut self.output {
-            let dir = out.frames_dir.clone();
-            // PNG encoding takes a while for big frames: off the runtime.
-            let image = tokio::task::spawn_blocking(move || {
-                write_frame_files(&dir, w, h, &image).map(|()| image)
-            })
-            .await
-            .map_err(|e| ActorError::Peer {
-                actor: ACTOR.into(),
-                message: format!("writing a frame failed: {e}"),
-            })??;
+        let mut image = image;
+        if let Some(out) = &mut self.output {
             let path = out.csv.path().to_path_buf();
             out.csv.append(&m).map_err(|e| io_err(&path, e))?;
-            image
-        } else {
-            image
-        };
+            let to_write = if keep {
+                image.clone()
+            } else {
+                std::mem::replace(
+                    &mut image,
+                    FrameImage {
+                        frame: m.frame,
+                        rgba: Vec::new(),
+                        depth: None,
+                        primid: None,
+                    },
+                )
+            };
+            out.write(w, h, to_write).await?;
+        }
         if keep {
             self.summary.images.push(image);
         }
@@ -274,7 +336,11 @@ pub async fn run_display(
             message: format!("image of {}x{} is empty", opts.width, opts.height),
         });
     }
-    let output = opts.output.as_deref().map(Output::create).transpose()?;
+    let output = opts
+        .output
+        .as_deref()
+        .map(|dir| Output::create(dir, opts.save_frames))
+        .transpose()?;
     let viewer = match opts.web {
         Some(addr) => Some(WebViewer::start(addr).await.map_err(|e| ActorError::Io {
             actor: ACTOR.into(),
@@ -383,6 +449,9 @@ pub async fn run_display(
         }
         d.show_ready().await?;
         d.send_cameras(&mb).await?;
+    }
+    if let Some(out) = &mut d.output {
+        out.flush().await?;
     }
     Ok(d.finish(None))
 }

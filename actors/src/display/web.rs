@@ -145,6 +145,7 @@ fn reason(status: u16) -> &'static str {
         405 => "Method Not Allowed",
         408 => "Request Timeout",
         431 => "Request Header Fields Too Large",
+        500 => "Internal Server Error",
         503 => "Service Unavailable",
         _ => "Error",
     }
@@ -288,7 +289,13 @@ fn route(path: &str, latest: &Mutex<Latest>) -> Response {
             };
             // Encode outside the lock; the first request for a frame
             // caches it for the others.
-            let png = Arc::new(encode_png(w, h, &rgba));
+            let png = match dray_trace::image::encode_png(w, h, &rgba) {
+                Ok(png) => Arc::new(png),
+                Err(e) => {
+                    warn!(error = %e, "encoding the frame failed");
+                    return Response::text(500, "the frame could not be encoded");
+                }
+            };
             let mut l = lock(latest);
             if l.frame == Some(frame) {
                 l.png = Some((frame, png.clone()));
@@ -318,98 +325,6 @@ fn png_response(png: Arc<Vec<u8>>) -> Response {
         body: png,
         extra: "",
     }
-}
-
-const CRC_TABLE: [u32; 256] = {
-    let mut t = [0u32; 256];
-    let mut n = 0;
-    while n < 256 {
-        let mut c = n as u32;
-        let mut k = 0;
-        while k < 8 {
-            c = if c & 1 != 0 {
-                0xEDB8_8320 ^ (c >> 1)
-            } else {
-                c >> 1
-            };
-            k += 1;
-        }
-        t[n] = c;
-        n += 1;
-    }
-    t
-};
-
-/// CRC-32 (ISO 3309, as in PNG chunks).
-pub fn crc32(parts: &[&[u8]]) -> u32 {
-    let mut c = 0xFFFF_FFFFu32;
-    for p in parts {
-        for &b in *p {
-            c = CRC_TABLE[((c ^ u32::from(b)) & 0xFF) as usize] ^ (c >> 8);
-        }
-    }
-    c ^ 0xFFFF_FFFF
-}
-
-fn chunk(out: &mut Vec<u8>, kind: &[u8; 4], data: &[u8]) {
-    out.extend_from_slice(&(data.len() as u32).to_be_bytes());
-    out.extend_from_slice(kind);
-    out.extend_from_slice(data);
-    out.extend_from_slice(&crc32(&[kind, data]).to_be_bytes());
-}
-
-/// An 8-bit RGBA PNG of `rgba` (rows top to bottom). The image data is
-/// stored uncompressed (zlib "stored" blocks): encoding costs a copy and
-/// two checksums, which suits a viewer on a fast link.
-pub fn encode_png(width: u32, height: u32, rgba: &[[u8; 4]]) -> Vec<u8> {
-    let row = width as usize * 4;
-    let mut raw = Vec::with_capacity((row + 1) * height as usize);
-    for y in 0..height as usize {
-        raw.push(0); // filter: none
-        let px = rgba
-            .get(y * width as usize..(y + 1) * width as usize)
-            .unwrap_or(&[]);
-        raw.extend_from_slice(px.as_flattened());
-        raw.resize(raw.len() + (row - px.len() * 4), 0);
-    }
-    let mut z = Vec::with_capacity(raw.len() + raw.len() / 65535 * 5 + 16);
-    z.extend_from_slice(&[0x78, 0x01]);
-    let blocks: Vec<&[u8]> = if raw.is_empty() {
-        vec![&[]]
-    } else {
-        raw.chunks(65535).collect()
-    };
-    for (i, b) in blocks.iter().enumerate() {
-        z.push(u8::from(i + 1 == blocks.len()));
-        let len = b.len() as u16;
-        z.extend_from_slice(&len.to_le_bytes());
-        z.extend_from_slice(&(!len).to_le_bytes());
-        z.extend_from_slice(b);
-    }
-    z.extend_from_slice(&adler32(&raw).to_be_bytes());
-    let mut out = Vec::with_capacity(z.len() + 64);
-    out.extend_from_slice(b"\x89PNG\r\n\x1a\n");
-    let mut ihdr = Vec::with_capacity(13);
-    ihdr.extend_from_slice(&width.to_be_bytes());
-    ihdr.extend_from_slice(&height.to_be_bytes());
-    ihdr.extend_from_slice(&[8, 6, 0, 0, 0]); // 8 bits, RGBA, deflate, filter 0, no interlace
-    chunk(&mut out, b"IHDR", &ihdr);
-    chunk(&mut out, b"IDAT", &z);
-    chunk(&mut out, b"IEND", &[]);
-    out
-}
-
-fn adler32(data: &[u8]) -> u32 {
-    let (mut a, mut b) = (1u32, 0u32);
-    for block in data.chunks(5552) {
-        for &x in block {
-            a += u32::from(x);
-            b += a;
-        }
-        a %= 65521;
-        b %= 65521;
-    }
-    (b << 16) | a
 }
 
 const PAGE: &str = r#"<!doctype html>
@@ -466,11 +381,5 @@ mod tests {
         assert_eq!(parse_request_line(b"GET /"), Err(400));
         assert_eq!(parse_request_line(b"GET x HTTP/1.1"), Err(400));
         assert_eq!(parse_request_line(b""), Err(400));
-    }
-
-    #[test]
-    fn checksums() {
-        assert_eq!(crc32(&[b"123456789"]), 0xCBF4_3926);
-        assert_eq!(adler32(b"Wikipedia"), 0x11E6_0398);
     }
 }
