@@ -101,6 +101,10 @@ enum Command {
     /// over QUIC, run the camera path, print a summary, stop them all.
     Cluster {
         config: PathBuf,
+        /// Write every frame as a PNG (and the metrics CSV) in this
+        /// directory, instead of the config's `display.output`.
+        #[arg(long)]
+        frames: Option<PathBuf>,
         /// Kernel instruction set for the clients (default: the best).
         #[arg(long, value_parser = parse_isa)]
         isa: Option<Isa>,
@@ -113,6 +117,10 @@ enum Command {
     Node {
         #[arg(long)]
         config: PathBuf,
+        /// Display: write every frame as a PNG (and the metrics CSV) in
+        /// this directory, instead of the config's `display.output`.
+        #[arg(long)]
+        frames: Option<PathBuf>,
         /// scheduler, store, client or display.
         #[arg(long, value_parser = parse_role)]
         role: Role,
@@ -127,6 +135,10 @@ enum Command {
     /// transport (with the config's link shaping).
     Sim {
         config: PathBuf,
+        /// Write every frame as a PNG (and the metrics CSV) in this
+        /// directory, instead of the config's `display.output`.
+        #[arg(long)]
+        frames: Option<PathBuf>,
         /// Number of clients instead of the config's.
         #[arg(long)]
         clients: Option<u32>,
@@ -451,12 +463,21 @@ fn run(cli: Cli) -> Result<ExitCode> {
             triangles,
             frames,
         } => demo(&config, triangles, frames)?,
-        Command::Cluster { config, isa, json } => {
+        Command::Cluster {
+            config,
+            frames,
+            isa,
+            json,
+        } => {
             let cfg = dray_config::Config::load(&config)?;
             dray_actors::cluster::preflight(&cfg, None)?;
             let mut extra = Vec::new();
             if let Some(isa) = isa {
                 extra.extend(["--isa".to_string(), isa.name().to_string()]);
+            }
+            if let Some(dir) = &frames {
+                let dir = std::path::absolute(dir).context("the --frames directory")?;
+                extra.extend(["--frames".to_string(), dir.display().to_string()]);
             }
             let exe = std::env::current_exe().context("finding the dray binary")?;
             let report =
@@ -465,11 +486,16 @@ fn run(cli: Cli) -> Result<ExitCode> {
         }
         Command::Node {
             config,
+            frames,
             role,
             index,
             isa,
         } => {
-            let cfg = dray_config::Config::load(&config)?;
+            let mut cfg = dray_config::Config::load(&config)?;
+            if let Some(dir) = frames {
+                cfg.display.output = Some(dir);
+                cfg.display.save_frames = true;
+            }
             let opts = RunOptions {
                 isa,
                 ..RunOptions::default()
@@ -490,11 +516,16 @@ fn run(cli: Cli) -> Result<ExitCode> {
         }
         Command::Sim {
             config,
+            frames,
             clients,
             isa,
             json,
         } => {
-            let cfg = dray_config::Config::load(&config)?;
+            let mut cfg = dray_config::Config::load(&config)?;
+            if let Some(dir) = frames {
+                cfg.display.output = Some(dir);
+                cfg.display.save_frames = true;
+            }
             let opts = RunOptions {
                 clients,
                 isa,

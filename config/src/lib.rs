@@ -310,8 +310,8 @@ pub struct ClientsConfig {
     pub threads: u32,
     /// Voxel cache budget per client, MB (10^6 bytes; fractions allowed).
     pub cache_mb: f64,
-    /// Miss mode.
-    #[serde(default = "default_miss")]
+    /// Miss mode (`on_miss` is accepted too).
+    #[serde(default = "default_miss", alias = "on_miss")]
     pub miss_mode: MissMode,
     /// Most voxel fetches in flight per client.
     #[serde(default = "default_inflight")]

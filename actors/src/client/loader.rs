@@ -158,9 +158,17 @@ pub(crate) struct Loader {
     out: mpsc::UnboundedSender<(Address, Message)>,
     decoded: mpsc::UnboundedSender<Decoded>,
     pub stats: LoaderStats,
+    /// Bytes fetched that no tile has been charged with yet.
+    unattributed: u64,
 }
 
 impl Loader {
+    /// Bytes fetched that no tile asked for (prefetches), since the last
+    /// call.
+    pub fn take_unattributed(&mut self) -> u64 {
+        std::mem::take(&mut self.unattributed)
+    }
+
     pub fn new(
         manifest: Arc<Manifest>,
         cache: Arc<VoxelCache>,
@@ -183,6 +191,7 @@ impl Loader {
             out,
             decoded,
             stats: LoaderStats::default(),
+            unattributed: 0,
         }
     }
 
@@ -345,6 +354,9 @@ impl Loader {
                 for w in p.waiters {
                     let _ = w.send(Ok((v.clone(), std::mem::take(&mut bytes))));
                 }
+                // Prefetched before any packet asked: the next tile to
+                // finish carries these bytes, so frames count every byte.
+                self.unattributed += bytes;
             }
             Err(why) => {
                 p.failures += 1;

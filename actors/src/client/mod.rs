@@ -320,7 +320,8 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
             Some(r) = done_rx.recv() => {
                 busy[r.thread] = busy[r.thread].saturating_sub(1);
                 outstanding = outstanding.saturating_sub(1);
-                finish_tile(r, &opts, &results, &mut summary);
+                let prefetched = loader.take_unattributed();
+                finish_tile(r, prefetched, &opts, &results, &mut summary);
             }
             _ = tick.tick() => loader.tick(),
         }
@@ -368,8 +369,12 @@ fn job(a: AssignTile, diagonal: f32, isa: dray_trace::render::Isa) -> TileJob {
     }
 }
 
+/// Sends a finished tile's pixels and report; `prefetched` bytes (fetched
+/// by hints, asked for by no tile) are charged to it so that frames count
+/// every byte fetched.
 fn finish_tile(
     r: TileResult,
+    prefetched: u64,
     opts: &ClientOptions,
     out: &mpsc::UnboundedSender<(Address, Message)>,
     summary: &mut ClientSummary,
@@ -393,7 +398,7 @@ fn finish_tile(
                 time_us: job.assigned.elapsed().as_micros() as u64,
                 voxels_touched: st.voxels_touched,
                 misses: st.misses.min(u64::from(u32::MAX)) as u32,
-                bytes_fetched,
+                bytes_fetched: bytes_fetched + prefetched,
                 stall_us: stall.as_micros() as u64,
             };
             let pixels: Vec<u8> = img.rgba.iter().flatten().copied().collect();
