@@ -492,10 +492,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
             isa,
         } => {
             let mut cfg = dray_config::Config::load(&config)?;
-            if let Some(dir) = frames {
-                cfg.display.output = Some(dir);
-                cfg.display.save_frames = true;
-            }
+            frames_to(&mut cfg, frames);
             let opts = RunOptions {
                 isa,
                 ..RunOptions::default()
@@ -522,10 +519,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
             json,
         } => {
             let mut cfg = dray_config::Config::load(&config)?;
-            if let Some(dir) = frames {
-                cfg.display.output = Some(dir);
-                cfg.display.save_frames = true;
-            }
+            frames_to(&mut cfg, frames);
             let opts = RunOptions {
                 clients,
                 isa,
@@ -607,6 +601,14 @@ fn build_database(opts: &PreprocessOptions) -> Result<()> {
         m.stored_triangles as f64 / m.input_triangles as f64
     );
     Ok(())
+}
+
+/// `--frames DIR`: every frame as a PNG, and the metrics, in DIR.
+fn frames_to(cfg: &mut dray_config::Config, dir: Option<PathBuf>) {
+    if let Some(dir) = dir {
+        cfg.display.output = Some(dir);
+        cfg.display.save_frames = true;
+    }
 }
 
 fn runtime() -> Result<tokio::runtime::Runtime> {
