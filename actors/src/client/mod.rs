@@ -210,7 +210,12 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
 
     let me = mb.handle();
     let fetches = sender(me.clone(), "voxel fetch");
-    let results = sender(me.clone(), "tile result");
+    // Control messages to the scheduler (reports, requests for work) and
+    // the pixels to the display go out in separate queues: a display that
+    // is slow to take tiles must not hold back the requests that keep the
+    // render threads busy.
+    let results = sender(me.clone(), "tile report");
+    let pixels = sender(me.clone(), "tile pixels");
     let cache = Arc::new(VoxelCache::new(manifest.voxels.len(), opts.cache_bytes));
     let (req_tx, mut req_rx) = mpsc::unbounded_channel();
     let (decoded_tx, mut decoded_rx) = mpsc::unbounded_channel();
@@ -321,7 +326,7 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
                 busy[r.thread] = busy[r.thread].saturating_sub(1);
                 outstanding = outstanding.saturating_sub(1);
                 let prefetched = loader.take_unattributed();
-                finish_tile(r, prefetched, &opts, &results, &mut summary);
+                finish_tile(r, prefetched, &opts, &results, &pixels, &mut summary);
             }
             _ = tick.tick() => loader.tick(),
         }
@@ -377,6 +382,7 @@ fn finish_tile(
     prefetched: u64,
     opts: &ClientOptions,
     out: &mpsc::UnboundedSender<(Address, Message)>,
+    pixels_out: &mpsc::UnboundedSender<(Address, Message)>,
     summary: &mut ClientSummary,
 ) {
     let TileResult {
@@ -410,7 +416,7 @@ fn finish_tile(
                 prim_ids: job.want_prim_ids.then_some(PackedU32(img.primid)),
                 stats,
             };
-            let _ = out.send((opts.display.clone(), Message::TileDone(done)));
+            let _ = pixels_out.send((opts.display.clone(), Message::TileDone(done)));
             let report = TileReport {
                 frame: job.frame,
                 tile: job.tile,
