@@ -452,18 +452,26 @@ pub async fn run_display_until(
         ),
         None => (None, None),
     };
-    let current = opts.cameras.first().copied().unwrap_or(dray_protocol::Camera {
-        eye: [0.0; 3],
-        look: [0.0, 0.0, 1.0],
-        up: [0.0, 1.0, 0.0],
-        fov_y_deg: 45.0,
-    });
+    let current = opts
+        .cameras
+        .first()
+        .copied()
+        .unwrap_or(dray_protocol::Camera {
+            eye: [0.0; 3],
+            look: [0.0, 0.0, 1.0],
+            up: [0.0, 1.0, 0.0],
+            fov_y_deg: 45.0,
+        });
     let mut d = Display {
         frames: Frames::new(opts.width, opts.height),
         summary: DisplaySummary::new(
             opts.width,
             opts.height,
-            if opts.interactive { 0 } else { opts.cameras.len() },
+            if opts.interactive {
+                0
+            } else {
+                opts.cameras.len()
+            },
         ),
         opts,
         sent: 0,

@@ -163,7 +163,14 @@ pub fn step_for(cam: &Camera) -> f32 {
 /// Rotates the view about `up` by `yaw` degrees (positive: left), then
 /// about the right vector by `pitch` degrees (positive: up), stopping
 /// [`MIN_POLE_DEG`] short of the up vector.
-fn turn(cam: &Camera, view: [f32; 3], up: [f32; 3], right: [f32; 3], yaw: f32, pitch: f32) -> Camera {
+fn turn(
+    cam: &Camera,
+    view: [f32; 3],
+    up: [f32; 3],
+    right: [f32; 3],
+    yaw: f32,
+    pitch: f32,
+) -> Camera {
     let mut d = rotate(view, up, yaw.to_radians());
     if pitch != 0.0 {
         let r = rotate(right, up, yaw.to_radians());
@@ -245,8 +252,16 @@ mod tests {
             Some(Move::Drag { dx: 4.0, dy: -2.0 })
         );
         for bad in [
-            "", "k=", "k=z", "w", "k=w&k=s", "k=w&dx=1", "k=look&dx=nan", "k=look&dx=1e9",
-            "x=w", "k=look&dx=",
+            "",
+            "k=",
+            "k=z",
+            "w",
+            "k=w&k=s",
+            "k=w&dx=1",
+            "k=look&dx=nan",
+            "k=look&dx=1e9",
+            "x=w",
+            "k=look&dx=",
         ] {
             assert_eq!(Move::parse(bad), None, "{bad:?}");
         }

@@ -82,7 +82,9 @@ impl WebViewer {
 
     /// Like [`Self::start`], and takes camera moves on `/move`: they come
     /// out of the receiver, at most [`MOVE_QUEUE`] waiting.
-    pub async fn start_interactive(addr: SocketAddr) -> io::Result<(WebViewer, mpsc::Receiver<Move>)> {
+    pub async fn start_interactive(
+        addr: SocketAddr,
+    ) -> io::Result<(WebViewer, mpsc::Receiver<Move>)> {
         let (tx, rx) = mpsc::channel(MOVE_QUEUE);
         Ok((Self::listen(addr, Some(tx)).await?, rx))
     }
@@ -309,7 +311,10 @@ fn take_move(query: &str, shared: &Shared) -> Response {
         return Response::text(404, "not interactive (the config has a camera path)");
     };
     let Some(m) = Move::parse(query) else {
-        return Response::text(400, "unknown move: use k=w|s|a|d|q|e|r|f|left|right|up|down or k=look&dx=N&dy=N");
+        return Response::text(
+            400,
+            "unknown move: use k=w|s|a|d|q|e|r|f|left|right|up|down or k=look&dx=N&dy=N",
+        );
     };
     match tx.try_send(m) {
         Ok(()) => Response {
