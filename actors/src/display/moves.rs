@@ -113,9 +113,9 @@ impl Move {
     /// `cam` after the move, translations by `step`. A degenerate camera
     /// (eye on look, view along up) is returned unchanged.
     pub fn apply(self, cam: &Camera, step: f32) -> Camera {
-        let (eye, look) = (v(cam.eye), v(cam.look));
+        let (eye, look) = (cam.eye, cam.look);
         let view = sub(look, eye);
-        let (Some(f), Some(up)) = (unit(view), unit(v(cam.up))) else {
+        let (Some(f), Some(up)) = (unit(view), unit(cam.up)) else {
             return *cam;
         };
         let Some(right) = unit(cross(f, up)) else {
@@ -152,7 +152,7 @@ impl Move {
 /// The step of translations for a first camera: [`STEP_FRACTION`] of its
 /// eye→look distance (1 when that is zero or not finite).
 pub fn step_for(cam: &Camera) -> f32 {
-    let d = len(sub(v(cam.look), v(cam.eye)));
+    let d = len(sub(cam.look, cam.eye));
     if d.is_finite() && d > 0.0 {
         d * STEP_FRACTION
     } else {
@@ -180,7 +180,7 @@ fn turn(
         let target = (now - pitch).clamp(MIN_POLE_DEG, 180.0 - MIN_POLE_DEG);
         d = rotate(d, r, (now - target).to_radians());
     }
-    let eye = v(cam.eye);
+    let eye = cam.eye;
     Camera {
         look: add(eye, d),
         ..*cam
@@ -196,9 +196,6 @@ fn rotate(x: [f32; 3], k: [f32; 3], a: f32) -> [f32; 3] {
     )
 }
 
-fn v(a: [f32; 3]) -> [f32; 3] {
-    a
-}
 fn add(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
     [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
 }
