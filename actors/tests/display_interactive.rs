@@ -215,6 +215,10 @@ async fn display_interactive_follows_moves_from_the_web_viewer() {
     let len = moved.iter().map(|x| x * x).sum::<f32>().sqrt();
     assert!((len - step).abs() < 1e-4 && moved[0] < 0.0, "{moved:?}");
 
+    f.complete(s).await;
+    let seq = s;
+    tokio::time::sleep(Duration::from_millis(100)).await;
+
     // A Shutdown ends the run, with the frames shown so far.
     f.assigner
         .send(
@@ -229,6 +233,9 @@ async fn display_interactive_follows_moves_from_the_web_viewer() {
     assert_eq!(s.frames.len() as u64, seq + 1);
     assert_eq!(s.frames_requested, s.frames.len());
     assert!(s.complete && s.stopped_early.is_none());
+    // The idle pause is not frame time.
+    let last = s.frames.last().unwrap();
+    assert!(last.frame_ms < 450.0, "{}", last.frame_ms);
     // The viewer stopped with the display.
     tokio::time::sleep(Duration::from_millis(100)).await;
     assert!(TcpStream::connect(f.web).await.is_err());

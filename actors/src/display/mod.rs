@@ -227,6 +227,9 @@ struct Display {
     moves: Option<tokio::sync::mpsc::Receiver<Move>>,
     /// Interactive: cameras sent since the last move (or the start).
     since_move: u64,
+    /// Interactive: time spent waiting for a move with nothing in flight,
+    /// left out of the frame times and the run's time.
+    idle: Duration,
 }
 
 impl Display {
@@ -294,6 +297,15 @@ impl Display {
             }
             debug!(frame = seq, "camera sent");
             self.retry_at = None;
+            if self.opts.interactive && self.frames.outstanding() == 0 {
+                // Resuming after an idle pause: the next frame's time
+                // counts from now, not from the last frame shown.
+                if let Some(last) = self.last_shown {
+                    let now = Instant::now();
+                    self.idle += now.saturating_duration_since(last);
+                    self.last_shown = Some(now);
+                }
+            }
             self.frames.open(seq);
             if self.started.is_none() {
                 self.started = Some(Instant::now());
@@ -382,7 +394,7 @@ impl Display {
 
     fn finish(mut self, stopped: Option<String>) -> DisplaySummary {
         let seconds = match (self.started, self.last_shown) {
-            (Some(a), Some(b)) => (b - a).as_secs_f64(),
+            (Some(a), Some(b)) => (b - a).saturating_sub(self.idle).as_secs_f64(),
             _ => 0.0,
         };
         if self.opts.interactive {
@@ -484,6 +496,7 @@ pub async fn run_display_until(
         current,
         moves,
         since_move: 0,
+        idle: Duration::ZERO,
     };
     if d.opts.cameras.is_empty() {
         return Ok(d.finish(None));
