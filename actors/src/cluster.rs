@@ -16,7 +16,7 @@
 //! starts on its own machine; in-process they are shaped by the network.
 
 use crate::client::{run_client, ClientOptions, ClientSummary};
-use crate::display::{path::CameraPath, run_display, DisplayOptions, DisplaySummary};
+use crate::display::{path::CameraPath, run_display_until, DisplayOptions, DisplaySummary};
 use crate::names::{self, StoreRoutes};
 use crate::scheduler::{
     run_assigner, run_prefetcher, run_scheduler, AssignerOptions, PrefetcherOptions,
@@ -122,9 +122,19 @@ pub fn store_routes(cfg: &Config) -> Result<StoreRoutes, ClusterError> {
     })
 }
 
+/// Whether the display runs interactively: no `render.camera_path` and a
+/// web viewer (`display.web`), whose page then sends the camera moves.
+pub fn interactive(cfg: &Config) -> bool {
+    cfg.render.camera_path.is_none() && cfg.display.web.is_some()
+}
+
 /// The camera of every frame: the camera path's, `render.loops` times, or
-/// the fixed camera `render.frames` times.
+/// the fixed camera `render.frames` times; interactive ([`interactive`]):
+/// the fixed camera once, where the user starts.
 pub fn frame_cameras(cfg: &Config) -> Result<Vec<Camera>, ClusterError> {
+    if interactive(cfg) {
+        return Ok(vec![wire_camera(&cfg.render.camera)]);
+    }
     match &cfg.render.camera_path {
         Some(p) => {
             let once = CameraPath::load(p)
@@ -194,6 +204,7 @@ fn display_options(cfg: &Config, opts: &RunOptions) -> Result<DisplayOptions, Cl
         width: cfg.render.width,
         height: cfg.render.height,
         cameras: frame_cameras(cfg)?,
+        interactive: interactive(cfg),
         frames_ahead: cfg.display.frames_ahead as usize,
         output: cfg.display.output.clone(),
         save_frames: cfg.display.save_frames,
@@ -375,7 +386,9 @@ pub async fn sim(cfg: &Config, opts: &RunOptions) -> Result<RunSummary, ClusterE
         .map(|mb| tokio::spawn(run_client(mb, copts.clone())))
         .collect();
     info!(clients, stores = stores.len(), "simulated cluster started");
-    let display = run_display(display_box, display_options(cfg, opts)?).await;
+    // Ctrl-C ends the display (an interactive run has no other end here)
+    // with the summary of what it showed; the others are then stopped.
+    let display = run_display_until(display_box, display_options(cfg, opts)?, ctrl_c()).await;
     shutdown_all(&control, &every_actor(cfg, clients), "the run is over").await;
     let display = display?;
     let scheduler = joined("scheduler", sched.scheduler).await?;
@@ -398,6 +411,14 @@ pub async fn sim(cfg: &Config, opts: &RunOptions) -> Result<RunSummary, ClusterE
         clients: client_summaries,
         stores: store_summaries,
     })
+}
+
+/// Completes on Ctrl-C (never when the handler cannot be installed).
+async fn ctrl_c() {
+    if let Err(e) = tokio::signal::ctrl_c().await {
+        warn!("Ctrl-C cannot be caught: {e}");
+        std::future::pending::<()>().await;
+    }
 }
 
 /// The node a role and index name.
@@ -573,11 +594,16 @@ pub async fn node(
     use std::io::Write;
     let _ = std::io::stdout().flush();
 
-    let outcome = tokio::select! {
-        r = run_role(cfg, opts, &bus, boxes, index, clients) => r,
-        _ = tokio::signal::ctrl_c() => {
-            warn!(node = %me, "interrupted");
-            Ok(NodeOutcome::Stopped)
+    let outcome = if role == Role::Display {
+        // The display handles Ctrl-C itself (see run_role).
+        run_role(cfg, opts, &bus, boxes, index, clients).await
+    } else {
+        tokio::select! {
+            r = run_role(cfg, opts, &bus, boxes, index, clients) => r,
+            _ = tokio::signal::ctrl_c() => {
+                warn!(node = %me, "interrupted");
+                Ok(NodeOutcome::Stopped)
+            }
         }
     };
     transport.shutdown().await;
@@ -652,7 +678,9 @@ async fn run_role(
             let control = bus
                 .mailbox(name("control"), 16)
                 .map_err(|e| node_err(bus.node(), e))?;
-            let summary = run_display(mb, display_options(cfg, opts)?).await;
+            // Ctrl-C ends the display cleanly (it is how an interactive
+            // run ends): the others are stopped and the summary printed.
+            let summary = run_display_until(mb, display_options(cfg, opts)?, ctrl_c()).await;
             shutdown_all(&control, &every_actor(cfg, clients), "the run is over").await;
             // Give the shutdown messages time to leave before the
             // transport closes.

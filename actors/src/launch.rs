@@ -5,7 +5,11 @@
 //! each prints `ready NODE` once its connections are up, and the display
 //! only does so when every client has joined, so "all ready" means the
 //! whole cluster is up. Then the display runs the camera path, prints
-//! `summary JSON` and tells every node to stop.
+//! `summary JSON` and tells every node to stop. An interactive display
+//! (no camera path, a web viewer) runs until Ctrl-C: the terminal's
+//! SIGINT reaches the nodes too, the display ends with its summary, and
+//! the supervisor waits for it (up to `STOP_TIMEOUT`; a second Ctrl-C
+//! stops everything at once).
 //!
 //! Faults while running: a client that dies is reported and the others
 //! take its tiles (the scheduler reassigns them); a store that dies is
@@ -251,6 +255,11 @@ pub async fn cluster(
     let mut summary = None;
     let started = tokio::time::Instant::now();
     let mut all_ready = false;
+    // An interactive display runs until Ctrl-C: the first one (which the
+    // nodes get too, from the terminal) waits for the display's summary,
+    // a second one or STOP_TIMEOUT stops everything at once.
+    let interactive = crate::cluster::interactive(cfg);
+    let mut interrupted: Option<tokio::time::Instant> = None;
     let mut tick = tokio::time::interval(Duration::from_millis(50));
     let outcome: Result<(), LaunchError> = loop {
         tokio::select! {
@@ -286,6 +295,9 @@ pub async fn cluster(
                 None => {}
             },
             _ = tick.tick() => {
+                if interrupted.is_some_and(|t| t.elapsed() > STOP_TIMEOUT) {
+                    break Err(LaunchError::Interrupted);
+                }
                 if !all_ready && started.elapsed() > STARTUP_TIMEOUT {
                     let waiting: Vec<&str> = procs.iter().filter(|p| !p.ready).map(|p| p.name.as_str()).collect();
                     break Err(LaunchError::Startup { waiting: waiting.join(", ") });
@@ -343,7 +355,15 @@ pub async fn cluster(
                     }
                 }
             }
-            _ = tokio::signal::ctrl_c() => break Err(LaunchError::Interrupted),
+            _ = tokio::signal::ctrl_c() => {
+                if interactive && all_ready && interrupted.is_none() {
+                    eprintln!("cluster: interrupted; waiting for the display's summary (Ctrl-C again to stop at once)");
+                    events.push("interrupted: the interactive run ended".into());
+                    interrupted = Some(tokio::time::Instant::now());
+                    continue;
+                }
+                break Err(LaunchError::Interrupted);
+            }
         }
     };
     // The display told everyone to stop; wait for them, then make sure.

@@ -119,6 +119,7 @@ fn start(frames: usize, ahead: usize, output: Option<std::path::PathBuf>) -> Clu
         width: W,
         height: H,
         cameras: (0..frames).map(camera).collect(),
+        interactive: false,
         frames_ahead: ahead,
         output,
         save_frames: true,

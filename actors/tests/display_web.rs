@@ -169,6 +169,7 @@ async fn display_web_viewer_shows_the_displays_latest_frame() {
             width: 8,
             height: 4,
             cameras: vec![cam; 3],
+            interactive: false,
             frames_ahead: 1,
             output: None,
             save_frames: true,

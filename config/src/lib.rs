@@ -150,12 +150,15 @@ pub struct RenderConfig {
     /// comparisons with `dray render`).
     #[serde(default)]
     pub depth_and_ids: bool,
-    /// The camera when there is no camera path.
+    /// The camera when there is no camera path (interactive: where the
+    /// user starts).
     pub camera: CameraConfig,
     /// A camera path to follow (keyframes, TOML; one camera per frame).
     #[serde(default)]
     pub camera_path: Option<PathBuf>,
-    /// Frames of the fixed camera to render when there is no camera path.
+    /// Frames of the fixed camera to render when there is no camera path
+    /// and no web viewer (with `display.web` and no path the display is
+    /// interactive and renders until it is stopped).
     #[serde(default = "default_frames")]
     pub frames: u32,
     /// Times the camera path is flown (later loops run on warm caches).
@@ -271,7 +274,9 @@ fn default_prefetch_depth() -> u32 {
 pub struct DisplayConfig {
     /// `host:port` it listens on (QUIC, UDP).
     pub address: String,
-    /// `host:port` of the live web viewer (HTTP); none: no viewer.
+    /// `host:port` of the live web viewer (HTTP); none: no viewer. Without
+    /// `render.camera_path` it makes the display interactive: the page's
+    /// keys move the camera, and the run goes on until Ctrl-C.
     #[serde(default)]
     pub web: Option<String>,
     /// Directory for PNG frames and the metrics CSV; none: not written.

@@ -9,6 +9,17 @@
 //! plus `.pfm` depth and `.primid` ids when the tiles carry them), a row of
 //! `metrics.csv` and, with a viewer, a refresh of the web page ([`web`]).
 //!
+//! In interactive mode ([`DisplayOptions::interactive`]) the camera comes
+//! from a user instead: the display starts from the first camera and
+//! applies the [`Move`]s the web viewer takes on `/move` ([`moves`] has
+//! the keys and step sizes). It keeps `frames_ahead` frames in flight with
+//! the current camera, so the image refreshes continuously and a move
+//! shows in the next frame sent; after [`IDLE_FRAMES`] frames without a
+//! move it stops sending until the next move, so an idle viewer leaves the
+//! cluster idle. It runs until a Shutdown (or the stop future of
+//! [`run_display_until`], Ctrl-C in the node and `dray sim`), which is its
+//! normal end: the summary then counts as complete.
+//!
 //! Bad input never stops the display: tiles for frames that are not
 //! outstanding, outside the image or of inconsistent sizes are ignored
 //! with a warning and counted. Memory holds only the outstanding frames
@@ -20,11 +31,13 @@
 
 mod frames;
 mod metrics;
+pub mod moves;
 pub mod path;
 pub mod web;
 
 pub use frames::{FrameImage, TileRejected};
 pub use metrics::{DisplaySummary, FrameMetrics, CSV_HEADER};
+pub use moves::Move;
 pub use path::{CameraPath, Keyframe, PathError};
 pub use web::WebViewer;
 
@@ -33,6 +46,7 @@ use dray_protocol::{Address, CameraUpdate, Message, Ping};
 use dray_runtime::{Delivery, Mailbox, SendError};
 use frames::{Frames, ReadyFrame};
 use metrics::CsvLog;
+use std::future::Future;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 use tokio::time::Instant;
@@ -47,6 +61,12 @@ pub const MISSING_PIXELS_GRACE: Duration = Duration::from_secs(10);
 /// until the next try.
 pub const SEND_RETRY: Duration = Duration::from_millis(200);
 
+/// Interactive mode: frames rendered with an unchanged camera (from the
+/// start or the last move) before the display waits for the next move.
+/// A few refreshes let a progressive or still-loading view settle (voxels
+/// that missed the cache in the first frame are there for the next).
+pub const IDLE_FRAMES: u64 = 4;
+
 /// What the display does.
 #[derive(Clone, Debug)]
 pub struct DisplayOptions {
@@ -56,8 +76,12 @@ pub struct DisplayOptions {
     pub width: u32,
     /// Image height.
     pub height: u32,
-    /// One camera per frame, in order.
+    /// One camera per frame, in order; interactive: the first is where
+    /// the user starts, the others are unused.
     pub cameras: Vec<dray_protocol::Camera>,
+    /// Interactive mode: the camera follows the moves a user sends to the
+    /// web viewer (`web` must be set) and frames go on until a Shutdown.
+    pub interactive: bool,
     /// Cameras sent before the oldest frame is complete (2: double
     /// buffering; 0 counts as 1).
     pub frames_ahead: usize,
@@ -195,6 +219,17 @@ struct Display {
     last_shown: Option<Instant>,
     /// When to try sending cameras again after a failed send.
     retry_at: Option<Instant>,
+    /// Interactive: the user's camera now.
+    current: dray_protocol::Camera,
+    /// Interactive: the step of a translation ([`moves::step_for`]).
+    step: f32,
+    /// Interactive: the moves the viewer takes.
+    moves: Option<tokio::sync::mpsc::Receiver<Move>>,
+    /// Interactive: cameras sent since the last move (or the start).
+    since_move: u64,
+    /// Interactive: time spent waiting for a move with nothing in flight,
+    /// left out of the frame times and the run's time.
+    idle: Duration,
 }
 
 impl Display {
@@ -206,13 +241,39 @@ impl Display {
         self.opts.cameras.len() as u64
     }
 
+    /// Whether another camera is due (ignoring `frames_ahead`).
+    fn more(&self) -> bool {
+        if self.opts.interactive {
+            self.since_move < IDLE_FRAMES.max(self.ahead() as u64)
+        } else {
+            self.sent < self.total()
+        }
+    }
+
+    /// Applies `m` and every move already waiting behind it.
+    fn take_moves(&mut self, m: Move) {
+        let mut m = Some(m);
+        let mut n = 0;
+        while let Some(mv) = m {
+            self.current = mv.apply(&self.current, self.step);
+            n += 1;
+            m = self.moves.as_mut().and_then(|rx| rx.try_recv().ok());
+        }
+        debug!(moves = n, camera = ?self.current, "camera moved");
+        self.since_move = 0;
+    }
+
     /// Sends cameras until `frames_ahead` frames are outstanding. When the
     /// assigner cannot be reached now, the camera is retried later (on its
     /// node's PeerUp, or after [`SEND_RETRY`]).
     async fn send_cameras(&mut self, mb: &Mailbox) -> Result<(), ActorError> {
-        while self.sent < self.total() && self.frames.outstanding() < self.ahead() {
+        while self.more() && self.frames.outstanding() < self.ahead() {
             let seq = self.sent;
-            let camera = self.opts.cameras[seq as usize];
+            let camera = if self.opts.interactive {
+                self.current
+            } else {
+                self.opts.cameras[seq as usize]
+            };
             let r = mb
                 .send(
                     &self.opts.assigner,
@@ -236,11 +297,21 @@ impl Display {
             }
             debug!(frame = seq, "camera sent");
             self.retry_at = None;
+            if self.opts.interactive && self.frames.outstanding() == 0 {
+                // Resuming after an idle pause: the next frame's time
+                // counts from now, not from the last frame shown.
+                if let Some(last) = self.last_shown {
+                    let now = Instant::now();
+                    self.idle += now.saturating_duration_since(last);
+                    self.last_shown = Some(now);
+                }
+            }
             self.frames.open(seq);
             if self.started.is_none() {
                 self.started = Some(Instant::now());
             }
             self.sent += 1;
+            self.since_move += 1;
         }
         Ok(())
     }
@@ -311,12 +382,31 @@ impl Display {
         Ok(())
     }
 
+    /// Waits for the frame files being written; a failure is logged (the
+    /// run is ending anyway).
+    async fn flush(&mut self) {
+        if let Some(out) = &mut self.output {
+            if let Err(e) = out.flush().await {
+                warn!("writing the last frames: {e}");
+            }
+        }
+    }
+
     fn finish(mut self, stopped: Option<String>) -> DisplaySummary {
         let seconds = match (self.started, self.last_shown) {
-            (Some(a), Some(b)) => (b - a).as_secs_f64(),
+            (Some(a), Some(b)) => (b - a).saturating_sub(self.idle).as_secs_f64(),
             _ => 0.0,
         };
-        self.summary.complete = self.summary.frames.len() == self.opts.cameras.len();
+        if self.opts.interactive {
+            // Stopping is how an interactive run ends.
+            if let Some(why) = &stopped {
+                info!("interactive run over: {why}");
+            }
+            self.summary.frames_requested = self.summary.frames.len();
+            self.summary.complete = true;
+        } else {
+            self.summary.complete = self.summary.frames.len() == self.opts.cameras.len();
+        }
         if !self.summary.complete {
             self.summary.stopped_early = stopped.or(Some("stopped".into()));
         }
@@ -325,11 +415,26 @@ impl Display {
     }
 }
 
-/// Runs the display until every camera's frame is shown (or a Shutdown).
-pub async fn run_display(
+/// Runs the display until every camera's frame is shown (or a Shutdown;
+/// interactive: until a Shutdown).
+pub async fn run_display(mb: Mailbox, opts: DisplayOptions) -> Result<DisplaySummary, ActorError> {
+    run_display_until(mb, opts, std::future::pending()).await
+}
+
+/// [`run_display`], which also ends, with the summary of what was shown,
+/// when `stop` completes (Ctrl-C).
+pub async fn run_display_until(
     mut mb: Mailbox,
     opts: DisplayOptions,
+    stop: impl Future<Output = ()>,
 ) -> Result<DisplaySummary, ActorError> {
+    tokio::pin!(stop);
+    if opts.interactive && (opts.web.is_none() || opts.cameras.is_empty()) {
+        return Err(ActorError::Peer {
+            actor: ACTOR.into(),
+            message: "interactive mode needs a web viewer and a first camera".into(),
+        });
+    }
     if opts.width == 0 || opts.height == 0 {
         return Err(ActorError::Peer {
             actor: ACTOR.into(),
@@ -341,17 +446,45 @@ pub async fn run_display(
         .as_deref()
         .map(|dir| Output::create(dir, opts.save_frames))
         .transpose()?;
-    let viewer = match opts.web {
-        Some(addr) => Some(WebViewer::start(addr).await.map_err(|e| ActorError::Io {
-            actor: ACTOR.into(),
-            path: format!("http://{addr}/"),
-            source: e,
-        })?),
-        None => None,
+    let web_err = |addr: std::net::SocketAddr, e| ActorError::Io {
+        actor: ACTOR.into(),
+        path: format!("http://{addr}/"),
+        source: e,
     };
+    let (viewer, moves) = match opts.web {
+        Some(addr) if opts.interactive => {
+            let (v, rx) = WebViewer::start_interactive(addr)
+                .await
+                .map_err(|e| web_err(addr, e))?;
+            (Some(v), Some(rx))
+        }
+        Some(addr) => (
+            Some(WebViewer::start(addr).await.map_err(|e| web_err(addr, e))?),
+            None,
+        ),
+        None => (None, None),
+    };
+    let current = opts
+        .cameras
+        .first()
+        .copied()
+        .unwrap_or(dray_protocol::Camera {
+            eye: [0.0; 3],
+            look: [0.0, 0.0, 1.0],
+            up: [0.0, 1.0, 0.0],
+            fov_y_deg: 45.0,
+        });
     let mut d = Display {
         frames: Frames::new(opts.width, opts.height),
-        summary: DisplaySummary::new(opts.width, opts.height, opts.cameras.len()),
+        summary: DisplaySummary::new(
+            opts.width,
+            opts.height,
+            if opts.interactive {
+                0
+            } else {
+                opts.cameras.len()
+            },
+        ),
         opts,
         sent: 0,
         output,
@@ -359,6 +492,11 @@ pub async fn run_display(
         started: None,
         last_shown: None,
         retry_at: None,
+        step: moves::step_for(&current),
+        current,
+        moves,
+        since_move: 0,
+        idle: Duration::ZERO,
     };
     if d.opts.cameras.is_empty() {
         return Ok(d.finish(None));
@@ -374,6 +512,7 @@ pub async fn run_display(
         loop {
             tokio::select! {
                 _ = &mut wait => break,
+                _ = &mut stop => return Ok(d.finish(Some("interrupted".into()))),
                 delivery = mb.recv() => match delivery {
                     None => return Err(ActorError::BusClosed(ACTOR.into())),
                     Some(Delivery::Message { msg: Message::Shutdown(s), .. }) => {
@@ -389,7 +528,7 @@ pub async fn run_display(
     }
     d.send_cameras(&mb).await?;
 
-    while d.frames.next_out() < d.total() {
+    while d.opts.interactive || d.frames.next_out() < d.total() {
         // A frame whose report came but whose pixels do not is shown anyway
         // after a grace time; a camera that could not be sent is retried.
         let stuck = d
@@ -402,6 +541,21 @@ pub async fn run_display(
         };
         let delivery = tokio::select! {
             delivery = mb.recv() => delivery,
+            _ = &mut stop => {
+                info!("interrupted");
+                d.flush().await;
+                return Ok(d.finish(Some("interrupted".into())));
+            }
+            m = next_move(&mut d.moves) => {
+                match m {
+                    Some(m) => {
+                        d.take_moves(m);
+                        d.send_cameras(&mb).await?;
+                    }
+                    None => d.moves = None,
+                }
+                continue;
+            }
             _ = sleep_until_opt(deadline) => {
                 let now = Instant::now();
                 if stuck.is_some_and(|t| t <= now) {
@@ -433,6 +587,7 @@ pub async fn run_display(
                 }
                 Message::Shutdown(s) => {
                     info!("shutdown: {}", s.reason);
+                    d.flush().await;
                     return Ok(d.finish(Some(format!("shutdown: {}", s.reason))));
                 }
                 Message::Ping(p) => {
@@ -454,6 +609,14 @@ pub async fn run_display(
         out.flush().await?;
     }
     Ok(d.finish(None))
+}
+
+/// The next move; never when there is no viewer taking them.
+async fn next_move(rx: &mut Option<tokio::sync::mpsc::Receiver<Move>>) -> Option<Move> {
+    match rx {
+        Some(rx) => rx.recv().await,
+        None => std::future::pending().await,
+    }
 }
 
 async fn sleep_until_opt(deadline: Option<Instant>) {

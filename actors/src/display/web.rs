@@ -5,13 +5,19 @@
 //!   refreshes them (it polls `/metrics.json` and loads `/frame.png?n=N`
 //!   when a new frame is there);
 //! - `/frame.png` the latest frame (503 before the first one);
-//! - `/metrics.json` the latest [`FrameMetrics`] (`null` before the first).
+//! - `/metrics.json` the latest [`FrameMetrics`] (`null` before the first);
+//! - `/move?k=KEY` (interactive mode, [`WebViewer::start_interactive`]) a
+//!   camera move ([`Move::parse`] lists the keys), handed to the display
+//!   through a bounded channel: 204 when taken, 400 for an unknown move,
+//!   503 when the display is behind (the channel full) or gone, 404 when
+//!   the viewer is not interactive. GET only: it is a local tool.
 //!
 //! Requests are bounded: the head must fit in [`MAX_HEAD`] bytes and arrive
 //! within [`READ_TIMEOUT`], at most [`MAX_CONNECTIONS`] are served at once
 //! (more are closed at once), and anything that is not a well-formed GET
 //! gets a 4xx answer; nothing a client sends can stop the server.
 
+use super::moves::Move;
 use super::{FrameImage, FrameMetrics};
 use std::io;
 use std::net::SocketAddr;
@@ -19,7 +25,7 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Duration;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::{TcpListener, TcpStream};
-use tokio::sync::Semaphore;
+use tokio::sync::{mpsc, Semaphore};
 use tokio::task::JoinHandle;
 use tracing::{debug, info, warn};
 
@@ -35,6 +41,8 @@ const LINGER_BYTES: usize = 64 << 10;
 const LINGER_TIME: Duration = Duration::from_secs(1);
 /// Connections served at once.
 pub const MAX_CONNECTIONS: usize = 64;
+/// Moves waiting for the display; more are refused with 503.
+pub const MOVE_QUEUE: usize = 64;
 
 #[derive(Default)]
 struct Latest {
@@ -51,22 +59,51 @@ fn lock(m: &Mutex<Latest>) -> MutexGuard<'_, Latest> {
     m.lock().unwrap_or_else(|e| e.into_inner())
 }
 
+/// What the connections share.
+struct Shared {
+    latest: Mutex<Latest>,
+    /// Where `/move` requests go; `None`: not interactive.
+    moves: Option<mpsc::Sender<Move>>,
+}
+
 /// A running viewer; stops when dropped.
 pub struct WebViewer {
     addr: SocketAddr,
-    latest: Arc<Mutex<Latest>>,
+    shared: Arc<Shared>,
     task: JoinHandle<()>,
 }
 
 impl WebViewer {
-    /// Listens on `addr` (port 0: any free port, see [`Self::local_addr`]).
+    /// Listens on `addr` (port 0: any free port, see [`Self::local_addr`]);
+    /// `/move` is refused (404).
     pub async fn start(addr: SocketAddr) -> io::Result<WebViewer> {
+        Self::listen(addr, None).await
+    }
+
+    /// Like [`Self::start`], and takes camera moves on `/move`: they come
+    /// out of the receiver, at most [`MOVE_QUEUE`] waiting.
+    pub async fn start_interactive(
+        addr: SocketAddr,
+    ) -> io::Result<(WebViewer, mpsc::Receiver<Move>)> {
+        let (tx, rx) = mpsc::channel(MOVE_QUEUE);
+        Ok((Self::listen(addr, Some(tx)).await?, rx))
+    }
+
+    async fn listen(addr: SocketAddr, moves: Option<mpsc::Sender<Move>>) -> io::Result<WebViewer> {
         let listener = TcpListener::bind(addr).await?;
         let addr = listener.local_addr()?;
-        let latest = Arc::new(Mutex::new(Latest::default()));
-        let task = tokio::spawn(serve(listener, latest.clone()));
-        info!("web viewer on http://{addr}/");
-        Ok(WebViewer { addr, latest, task })
+        let interactive = moves.is_some();
+        let shared = Arc::new(Shared {
+            latest: Mutex::new(Latest::default()),
+            moves,
+        });
+        let task = tokio::spawn(serve(listener, shared.clone()));
+        if interactive {
+            info!("web viewer on http://{addr}/ (interactive: w/s/a/d/q/e/r/f, arrows, drag)");
+        } else {
+            info!("web viewer on http://{addr}/");
+        }
+        Ok(WebViewer { addr, shared, task })
     }
 
     /// Where it listens.
@@ -77,7 +114,7 @@ impl WebViewer {
     /// Shows `image` (of `width × height`) and its metrics from now on.
     pub fn publish(&self, width: u32, height: u32, image: &FrameImage, metrics: &FrameMetrics) {
         let json = serde_json::to_string(metrics).ok();
-        let mut l = lock(&self.latest);
+        let mut l = lock(&self.shared.latest);
         l.width = width;
         l.height = height;
         l.frame = Some(image.frame);
@@ -93,7 +130,7 @@ impl Drop for WebViewer {
     }
 }
 
-async fn serve(listener: TcpListener, latest: Arc<Mutex<Latest>>) {
+async fn serve(listener: TcpListener, shared: Arc<Shared>) {
     let slots = Arc::new(Semaphore::new(MAX_CONNECTIONS));
     loop {
         let (stream, peer) = match listener.accept().await {
@@ -109,9 +146,9 @@ async fn serve(listener: TcpListener, latest: Arc<Mutex<Latest>>) {
             debug!("web viewer: too many connections, closing {peer}");
             continue;
         };
-        let latest = latest.clone();
+        let shared = shared.clone();
         tokio::spawn(async move {
-            if let Err(e) = connection(stream, &latest).await {
+            if let Err(e) = connection(stream, &shared).await {
                 debug!("web viewer: {peer}: {e}");
             }
             drop(permit);
@@ -140,6 +177,7 @@ impl Response {
 fn reason(status: u16) -> &'static str {
     match status {
         200 => "OK",
+        204 => "No Content",
         400 => "Bad Request",
         404 => "Not Found",
         405 => "Method Not Allowed",
@@ -191,12 +229,16 @@ fn head_end(buf: &[u8]) -> Option<usize> {
     }
 }
 
-async fn connection(mut stream: TcpStream, latest: &Mutex<Latest>) -> io::Result<()> {
+async fn connection(mut stream: TcpStream, shared: &Shared) -> io::Result<()> {
     let (resp, head_only) = match read_head(&mut stream).await? {
         Err(status) => (Response::text(status, reason(status)), false),
         Ok(head) => match parse_request_line(&head) {
             Err(status) => (Response::text(status, reason(status)), false),
-            Ok((method, path)) => (route(&path, latest), method == "HEAD"),
+            // A move has an effect: not for HEAD.
+            Ok((method, path, _)) if method == "HEAD" && path == "/move" => {
+                (Response::text(405, reason(405)), false)
+            }
+            Ok((method, path, query)) => (route(&path, &query, shared), method == "HEAD"),
         },
     };
     let head = format!(
@@ -238,9 +280,9 @@ async fn connection(mut stream: TcpStream, latest: &Mutex<Latest>) -> io::Result
     Ok(())
 }
 
-/// `(method, path without the query)` of a GET or HEAD request, or the
-/// status to answer.
-fn parse_request_line(head: &[u8]) -> Result<(String, String), u16> {
+/// `(method, path, query)` of a GET or HEAD request (the query without
+/// its `?`, empty when none), or the status to answer.
+fn parse_request_line(head: &[u8]) -> Result<(String, String, String), u16> {
     let text = std::str::from_utf8(head).map_err(|_| 400u16)?;
     let line = text.lines().next().ok_or(400u16)?;
     let mut parts = line.split(' ');
@@ -258,12 +300,41 @@ fn parse_request_line(head: &[u8]) -> Result<(String, String), u16> {
     if method != "GET" && method != "HEAD" {
         return Err(405);
     }
-    let path = target.split(['?', '#']).next().unwrap_or("/");
-    Ok((method.to_string(), path.to_string()))
+    let target = target.split('#').next().unwrap_or("/");
+    let (path, query) = target.split_once('?').unwrap_or((target, ""));
+    Ok((method.to_string(), path.to_string(), query.to_string()))
 }
 
-fn route(path: &str, latest: &Mutex<Latest>) -> Response {
+/// Hands a `/move` request's move to the display.
+fn take_move(query: &str, shared: &Shared) -> Response {
+    let Some(tx) = &shared.moves else {
+        return Response::text(404, "not interactive (the config has a camera path)");
+    };
+    let Some(m) = Move::parse(query) else {
+        return Response::text(
+            400,
+            "unknown move: use k=w|s|a|d|q|e|r|f|left|right|up|down or k=look&dx=N&dy=N",
+        );
+    };
+    match tx.try_send(m) {
+        Ok(()) => Response {
+            status: 204,
+            content_type: "text/plain; charset=utf-8",
+            body: Arc::new(Vec::new()),
+            extra: "",
+        },
+        Err(mpsc::error::TrySendError::Full(_)) => Response {
+            extra: "Retry-After: 1\r\n",
+            ..Response::text(503, "too many moves waiting")
+        },
+        Err(mpsc::error::TrySendError::Closed(_)) => Response::text(503, "the display has stopped"),
+    }
+}
+
+fn route(path: &str, query: &str, shared: &Shared) -> Response {
+    let latest = &shared.latest;
     match path {
+        "/move" => take_move(query, shared),
         "/" | "/index.html" => Response {
             status: 200,
             content_type: "text/html; charset=utf-8",
@@ -333,12 +404,48 @@ const PAGE: &str = r#"<!doctype html>
 body { background: #111; color: #ddd; font: 14px monospace; margin: 1em; }
 img { image-rendering: pixelated; max-width: 100%; border: 1px solid #333; }
 #m { white-space: pre; margin-top: .5em; }
+#c { color: #888; margin-bottom: .5em; }
 </style></head>
 <body>
 <div><b>dray</b> live view</div>
-<img id="f" alt="waiting for the first frame">
+<div id="c">interactive: w/s forward/back, a/d strafe, q/e or &larr;/&rarr; turn,
+&uarr;/&darr; look up/down, r/f up/down, drag the image to look around
+<span id="k"></span></div>
+<img id="f" alt="waiting for the first frame" draggable="false">
 <div id="m">waiting for the first frame…</div>
 <script>
+// Camera moves: GET /move?k=KEY (404 when the display follows a path).
+const keys = {w:'w', s:'s', a:'a', d:'d', q:'q', e:'e', r:'r', f:'f',
+  ArrowLeft:'left', ArrowRight:'right', ArrowUp:'up', ArrowDown:'down'};
+const k = document.getElementById('k'), c = document.getElementById('c');
+async function send(q) {
+  try {
+    const r = await fetch('/move?' + q, {cache: 'no-store'});
+    if (r.status === 404) { c.textContent = 'camera path: the view is read-only'; }
+    else if (!r.ok) { k.textContent = ' (' + r.status + ')'; }
+    else { k.textContent = ''; }
+  } catch (e) { k.textContent = ' (display unreachable)'; }
+}
+document.addEventListener('keydown', (ev) => {
+  const key = keys[ev.key] || keys[ev.key.toLowerCase()];
+  if (!key || ev.ctrlKey || ev.metaKey || ev.altKey) return;
+  ev.preventDefault();
+  send('k=' + key);
+});
+let drag = null, dx = 0, dy = 0, pending = false;
+const fimg = document.getElementById('f');
+fimg.addEventListener('mousedown', (ev) => { drag = [ev.clientX, ev.clientY]; ev.preventDefault(); });
+document.addEventListener('mouseup', () => { drag = null; });
+document.addEventListener('mousemove', (ev) => {
+  if (!drag) return;
+  dx += ev.clientX - drag[0]; dy += ev.clientY - drag[1];
+  drag = [ev.clientX, ev.clientY];
+  if (!pending) {
+    pending = true;
+    // One drag move per 50 ms at most.
+    setTimeout(() => { pending = false; if (dx || dy) { send('k=look&dx=' + dx + '&dy=' + dy); dx = dy = 0; } }, 50);
+  }
+});
 let shown = -1, loading = false;
 const img = document.getElementById('f'), m = document.getElementById('m');
 async function poll() {
@@ -374,7 +481,7 @@ mod tests {
     fn request_lines() {
         assert_eq!(
             parse_request_line(b"GET /frame.png?n=3 HTTP/1.1\r\nHost: x"),
-            Ok(("GET".into(), "/frame.png".into()))
+            Ok(("GET".into(), "/frame.png".into(), "n=3".into()))
         );
         assert_eq!(parse_request_line(b"POST / HTTP/1.1"), Err(405));
         assert_eq!(parse_request_line(b"\xff\xfe"), Err(400));
