@@ -506,9 +506,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 .context("starting the async runtime")?;
             let outcome = rt.block_on(dray_actors::cluster::node(&cfg, role, index, &opts))?;
             if let NodeOutcome::Display(summary) = outcome {
-                let mut json = summary.to_json();
-                json["text"] = summary.print_text().into();
-                println!("summary {json}");
+                println!("summary {}", summary.to_json());
             }
         }
         Command::Sim {
@@ -527,7 +525,6 @@ fn run(cli: Cli) -> Result<ExitCode> {
             };
             let run = runtime()?.block_on(dray_actors::cluster::sim(&cfg, &opts))?;
             let mut summary = run.display.to_json();
-            summary["text"] = run.display.print_text().into();
             summary["clients"] = run
                 .clients
                 .iter()

@@ -220,15 +220,17 @@ struct SchedulerTasks {
     prefetcher: Option<JoinHandle<Result<crate::scheduler::PrefetcherSummary, ActorError>>>,
 }
 
+/// Actor `actor`'s mailbox on `bus`, holding `capacity` messages.
+fn open_mailbox(bus: &Bus, actor: &str, capacity: usize) -> Result<Mailbox, ClusterError> {
+    bus.mailbox(name(actor), capacity)
+        .map_err(|e| node_err(bus.node(), e))
+}
+
 fn scheduler_mailboxes(bus: &Bus) -> Result<[Mailbox; 3], ClusterError> {
-    let mb = |a: &str| {
-        bus.mailbox(name(a), MAILBOX)
-            .map_err(|e| node_err(bus.node(), e))
-    };
     Ok([
-        mb(names::SCHEDULER)?,
-        mb(names::ASSIGNER)?,
-        mb(names::PREFETCHER)?,
+        open_mailbox(bus, names::SCHEDULER, MAILBOX)?,
+        open_mailbox(bus, names::ASSIGNER, MAILBOX)?,
+        open_mailbox(bus, names::PREFETCHER, MAILBOX)?,
     ])
 }
 
@@ -353,25 +355,15 @@ pub async fn sim(cfg: &Config, opts: &RunOptions) -> Result<RunSummary, ClusterE
 
     // Every mailbox exists before any actor sends.
     let sched_boxes = scheduler_mailboxes(&sched_bus)?;
-    let display_box = display_bus
-        .mailbox(name(names::DISPLAY), MAILBOX)
-        .map_err(|e| node_err(display_bus.node(), e))?;
-    let control = display_bus
-        .mailbox(name("sim"), 16)
-        .map_err(|e| node_err(display_bus.node(), e))?;
+    let display_box = open_mailbox(&display_bus, names::DISPLAY, MAILBOX)?;
+    let control = open_mailbox(&display_bus, "sim", 16)?;
     let store_boxes = store_buses
         .iter()
-        .map(|b| {
-            b.mailbox(name(names::STORE), MAILBOX)
-                .map_err(|e| node_err(b.node(), e))
-        })
+        .map(|b| open_mailbox(b, names::STORE, MAILBOX))
         .collect::<Result<Vec<_>, _>>()?;
     let client_boxes = client_buses
         .iter()
-        .map(|b| {
-            b.mailbox(name(names::CLIENT), MAILBOX)
-                .map_err(|e| node_err(b.node(), e))
-        })
+        .map(|b| open_mailbox(b, names::CLIENT, MAILBOX))
         .collect::<Result<Vec<_>, _>>()?;
 
     let stores: Vec<_> = store_boxes
@@ -529,10 +521,7 @@ pub async fn node(
                 Role::Client => names::CLIENT,
                 _ => names::DISPLAY,
             };
-            RoleBoxes::One(
-                bus.mailbox(name(actor), MAILBOX)
-                    .map_err(|e| node_err(&me, e))?,
-            )
+            RoleBoxes::One(open_mailbox(&bus, actor, MAILBOX)?)
         }
     };
     let transport = QuicTransport::start(&bus, &identity, listen)
@@ -675,9 +664,7 @@ async fn run_role(
             Ok(NodeOutcome::Stopped)
         }
         (Role::Display, RoleBoxes::One(mb)) => {
-            let control = bus
-                .mailbox(name("control"), 16)
-                .map_err(|e| node_err(bus.node(), e))?;
+            let control = open_mailbox(bus, "control", 16)?;
             // Ctrl-C ends the display cleanly (it is how an interactive
             // run ends): the others are stopped and the summary printed.
             let summary = run_display_until(mb, display_options(cfg, opts)?, ctrl_c()).await;

@@ -19,7 +19,7 @@
 
 use dray_config::Config;
 use std::collections::VecDeque;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{ExitStatus, Stdio};
 use std::time::Duration;
 use tokio::io::{AsyncBufReadExt, BufReader};
@@ -118,6 +118,20 @@ fn tail_text(p: &Proc) -> String {
     }
 }
 
+/// Sends each line a child writes to `from` as an event.
+fn forward_lines(
+    from: impl tokio::io::AsyncRead + Unpin + Send + 'static,
+    tx: mpsc::Sender<Event>,
+    event: impl Fn(String) -> Event + Send + 'static,
+) {
+    tokio::spawn(async move {
+        let mut lines = BufReader::new(from).lines();
+        while let Ok(Some(line)) = lines.next_line().await {
+            let _ = tx.send(event(line)).await;
+        }
+    });
+}
+
 fn spawn(
     exe: &Path,
     p: &mut Proc,
@@ -141,22 +155,10 @@ fn spawn(
             source,
         })?;
     if let Some(out) = child.stdout.take() {
-        let tx = tx.clone();
-        tokio::spawn(async move {
-            let mut lines = BufReader::new(out).lines();
-            while let Ok(Some(line)) = lines.next_line().await {
-                let _ = tx.send(Event::Line { node: idx, line }).await;
-            }
-        });
+        forward_lines(out, tx.clone(), move |line| Event::Line { node: idx, line });
     }
     if let Some(err) = child.stderr.take() {
-        let tx = tx.clone();
-        tokio::spawn(async move {
-            let mut lines = BufReader::new(err).lines();
-            while let Ok(Some(line)) = lines.next_line().await {
-                let _ = tx.send(Event::Log { node: idx, line }).await;
-            }
-        });
+        forward_lines(err, tx.clone(), move |line| Event::Log { node: idx, line });
     }
     println!(
         "started {} (pid {})",
@@ -171,13 +173,11 @@ fn spawn(
 
 /// Makes the cluster's certificates when `certs.dir` has none yet (a
 /// cluster on one machine needs nothing else).
-pub fn ensure_certs(cfg: &Config, clients: u32) -> Result<bool, LaunchError> {
+pub fn ensure_certs(cfg: &Config) -> Result<bool, LaunchError> {
     if cfg.certs.dir.join("ca.pem").exists() {
         return Ok(false);
     }
-    let mut names = vec!["scheduler".to_string(), "display".to_string()];
-    names.extend((0..cfg.stores.len()).map(|i| format!("store-{i}")));
-    names.extend((0..clients).map(|i| format!("client-{i}")));
+    let names = cfg.node_names();
     let refs: Vec<&str> = names.iter().map(String::as_str).collect();
     dray_runtime::certs::init_cluster(&cfg.certs.dir, &refs)
         .map_err(|e| LaunchError::Certs(e.to_string()))?;
@@ -194,13 +194,12 @@ pub async fn cluster(
     extra: &[String],
 ) -> Result<ClusterReport, LaunchError> {
     let clients = cfg.clients.count as usize;
-    if ensure_certs(cfg, clients as u32)? {
+    if ensure_certs(cfg)? {
         println!(
             "made the cluster certificates in {}",
             cfg.certs.dir.display()
         );
     }
-    let config_arg: PathBuf = config_path.to_owned();
     let proc_for = |role: &str, index: Option<usize>| {
         let name = match index {
             Some(i) => format!("{role}-{i}"),
@@ -209,7 +208,7 @@ pub async fn cluster(
         let mut args = vec![
             "node".to_string(),
             "--config".into(),
-            config_arg.display().to_string(),
+            config_path.display().to_string(),
             "--role".into(),
             role.into(),
         ];

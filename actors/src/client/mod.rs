@@ -407,7 +407,7 @@ fn finish_tile(
                 bytes_fetched: bytes_fetched + prefetched,
                 stall_us: stall.as_micros() as u64,
             };
-            let pixels: Vec<u8> = img.rgba.iter().flatten().copied().collect();
+            let pixels = img.rgba.as_flattened().to_vec();
             let done = TileDone {
                 frame: job.frame,
                 tile: job.tile,

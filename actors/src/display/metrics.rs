@@ -280,9 +280,11 @@ impl DisplaySummary {
         s
     }
 
-    /// The summary (without images) as JSON.
+    /// The summary (without images) as JSON, with `print_text` as
+    /// `text`.
     pub fn to_json(&self) -> serde_json::Value {
         serde_json::json!({
+            "text": self.print_text(),
             "width": self.width,
             "height": self.height,
             "frames_requested": self.frames_requested,
