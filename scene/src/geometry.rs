@@ -39,22 +39,27 @@ impl Aabb {
         b
     }
 
+    #[inline]
     pub fn lo(&self) -> Vec3 {
         Vec3::from_array(self.min)
     }
 
+    #[inline]
     pub fn hi(&self) -> Vec3 {
         Vec3::from_array(self.max)
     }
 
+    #[inline]
     pub fn is_empty(&self) -> bool {
         (0..3).any(|a| self.min[a] > self.max[a])
     }
 
+    #[inline]
     pub fn grow(&mut self, p: Vec3) {
         *self = Aabb::new(self.lo().min(p), self.hi().max(p));
     }
 
+    #[inline]
     pub fn union(&self, other: &Aabb) -> Aabb {
         Aabb::new(self.lo().min(other.lo()), self.hi().max(other.hi()))
     }
@@ -71,6 +76,7 @@ impl Aabb {
         }
     }
 
+    #[inline]
     pub fn center(&self) -> Vec3 {
         (self.lo() + self.hi()) * 0.5
     }
@@ -80,6 +86,7 @@ impl Aabb {
     }
 
     /// Surface area (0 for an empty box).
+    #[inline]
     pub fn area(&self) -> f32 {
         let e = self.extent();
         2.0 * (e.x * e.y + e.y * e.z + e.z * e.x)

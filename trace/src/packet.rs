@@ -32,6 +32,16 @@ const WIDEN: f32 = 1.0 / 65536.0;
 /// triangle test), so that no NaN reaches the interval arithmetic.
 const TINY: f32 = 1e-30;
 
+/// The sign of one direction component across a packet's lanes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Sign {
+    /// Every lane's reciprocal is positive: the min plane is near.
+    Positive,
+    /// Every lane's reciprocal is negative: the max plane is near.
+    Negative,
+    Mixed,
+}
+
 /// N rays and what they found.
 #[derive(Clone, Debug)]
 pub struct Packet<const N: usize> {
@@ -39,6 +49,9 @@ pub struct Packet<const N: usize> {
     pub org: [[f32; N]; 3],
     pub dir: [[f32; N]; 3],
     inv: [[f32; N]; 3],
+    /// Per axis, whether every lane's direction has the same sign: the
+    /// slab test then knows which plane is near without comparing.
+    signs: [Sign; 3],
     /// Hits count only in `(tmin, t)`: `t` starts at the ray's far limit.
     pub tmin: f32,
     pub t: [f32; N],
@@ -71,10 +84,24 @@ impl<const N: usize> Packet<N> {
                 inv[a][i] = 1.0 / guarded;
             }
         }
+        let signs = [0, 1, 2].map(|a| {
+            let mut positive = true;
+            let mut negative = true;
+            for i in 0..N {
+                positive &= inv[a][i] > 0.0;
+                negative &= inv[a][i] < 0.0;
+            }
+            match (positive, negative) {
+                (true, _) => Sign::Positive,
+                (_, true) => Sign::Negative,
+                _ => Sign::Mixed,
+            }
+        });
         Packet {
             org,
             dir,
             inv,
+            signs,
             tmin,
             t: [tmax; N],
             id: [u32::MAX; N],
@@ -111,19 +138,40 @@ impl<const N: usize> Packet<N> {
     #[inline(always)]
     fn slab(&self, min: [f32; 3], max: [f32; 3]) -> ([f32; N], [f32; N]) {
         let mut t0 = [self.tmin; N];
-        let mut t1 = self.t;
+        let mut exit = [f32::INFINITY; N];
         for a in 0..3 {
+            // Where every lane agrees on the sign (nearly always), the near
+            // plane is known: two multiplies and a max/min per lane. The
+            // values are those the comparison would pick, so both paths
+            // cull alike.
+            let (near_plane, far_plane) = match self.signs[a] {
+                Sign::Positive => (min[a], max[a]),
+                Sign::Negative => (max[a], min[a]),
+                Sign::Mixed => {
+                    for i in 0..N {
+                        let near = (min[a] - self.org[a][i]) * self.inv[a][i];
+                        let far = (max[a] - self.org[a][i]) * self.inv[a][i];
+                        let (lo, hi) = if near < far { (near, far) } else { (far, near) };
+                        t0[i] = if lo > t0[i] { lo } else { t0[i] };
+                        exit[i] = if hi < exit[i] { hi } else { exit[i] };
+                    }
+                    continue;
+                }
+            };
             for i in 0..N {
-                let near = (min[a] - self.org[a][i]) * self.inv[a][i];
-                let far = (max[a] - self.org[a][i]) * self.inv[a][i];
-                let (lo, hi) = if near < far { (near, far) } else { (far, near) };
+                let lo = (near_plane - self.org[a][i]) * self.inv[a][i];
+                let hi = (far_plane - self.org[a][i]) * self.inv[a][i];
                 t0[i] = if lo > t0[i] { lo } else { t0[i] };
-                let hi = hi + hi.abs() * WIDEN;
-                t1[i] = if hi < t1[i] { hi } else { t1[i] };
+                exit[i] = if hi < exit[i] { hi } else { exit[i] };
             }
         }
+        // Widening is monotonic, so widening the nearest exit once equals
+        // taking the nearest of the widened exits.
+        let mut t1 = self.t;
         for i in 0..N {
             t0[i] -= t0[i].abs() * WIDEN;
+            let hi = exit[i] + exit[i].abs() * WIDEN;
+            t1[i] = if hi < t1[i] { hi } else { t1[i] };
         }
         (t0, t1)
     }
@@ -174,12 +222,17 @@ impl<const N: usize> Packet<N> {
         const LEAF: u32 = 1 << 31;
         // Each wide level pushes at most 4 entries and the BVH is at most
         // 64 binary levels deep: 4 * 64 + 4 entries always fit.
-        let mut stack = [0u32; 260];
+        // Uninitialised: zeroing 1 KiB on every voxel a packet enters
+        // showed in profiles, and only written slots are read.
+        let mut stack = [std::mem::MaybeUninit::<u32>::uninit(); 260];
+        stack[0].write(0);
         let mut top = 1usize;
         let dir0 = [self.dir[0][0], self.dir[1][0], self.dir[2][0]];
         while top > 0 {
             top -= 1;
-            let entry = stack[top];
+            // SAFETY: slots below `top` were all written (the root above,
+            // pushes below).
+            let entry = unsafe { stack[top].assume_init() };
             if entry & LEAF != 0 {
                 let first = entry & 0x00FF_FFFF;
                 let count = (entry >> 24) & 0x7F;
@@ -232,10 +285,20 @@ impl<const N: usize> Packet<N> {
                     }
                 }
             }
-            // Far first on the stack, so the nearest is popped next.
-            hits[..n].sort_unstable_by(|a, b| b.0.total_cmp(&a.0));
+            // Far first on the stack, so the nearest is popped next (an
+            // insertion sort: a library sort of four costs more than the
+            // node's box tests).
+            for j in 1..n {
+                let x = hits[j];
+                let mut k = j;
+                while k > 0 && hits[k - 1].0 < x.0 {
+                    hits[k] = hits[k - 1];
+                    k -= 1;
+                }
+                hits[k] = x;
+            }
             for &(_, e) in &hits[..n] {
-                stack[top] = e;
+                stack[top].write(e);
                 top += 1;
                 // Start fetching what the entry needs: traversal is bound
                 // by these loads, and the far entries wait a while.
@@ -334,12 +397,24 @@ impl<const N: usize> AnyShear<N> {
     #[inline(always)]
     fn new(p: &Packet<N>) -> AnyShear<N> {
         let lane = |i: usize| [p.dir[0][i], p.dir[1][i], p.dir[2][i]];
-        let mut perms = [(0usize, 0usize, 0usize); N];
-        for (i, perm) in perms.iter_mut().enumerate() {
-            *perm = permutation(lane(i));
+        // Whether every lane picks lane 0's permutation: the same tests as
+        // `permutation`, lane by lane without branches (this runs for every
+        // packet; the per-lane version showed in profiles).
+        let (kx, ky, kz) = permutation(lane(0));
+        let negative = p.dir[kz][0] < 0.0;
+        let mut uniform = true;
+        for i in 0..N {
+            let ad = [p.dir[0][i].abs(), p.dir[1][i].abs(), p.dir[2][i].abs()];
+            let x_major = (ad[0] >= ad[1]) & (ad[0] >= ad[2]);
+            let y_over_z = ad[1] >= ad[2];
+            let same_axis = match kz {
+                0 => x_major,
+                1 => !x_major & y_over_z,
+                _ => !x_major & !y_over_z,
+            };
+            uniform &= same_axis & ((p.dir[kz][i] < 0.0) == negative);
         }
-        let (kx, ky, kz) = perms[0];
-        if perms.iter().all(|&q| q == (kx, ky, kz)) {
+        if uniform {
             let mut s = Shear {
                 kx,
                 ky,
@@ -362,7 +437,8 @@ impl<const N: usize> AnyShear<N> {
             sy: [0.0; N],
             sz: [0.0; N],
         };
-        for (i, &(kx, ky, kz)) in perms.iter().enumerate() {
+        for i in 0..N {
+            let (kx, ky, kz) = permutation(lane(i));
             m.k[0][i] = kx as u8;
             m.k[1][i] = ky as u8;
             m.k[2][i] = kz as u8;
