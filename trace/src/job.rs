@@ -15,13 +15,13 @@
 #![allow(clippy::needless_range_loop)]
 
 use crate::camera::CameraBasis;
+use crate::clock;
 use crate::packet::{Packet, Step, Traversal};
 use crate::render::{voxel_color, FrameStats, RenderSettings, AMBIENT, BACKGROUND, SHADOW_EPS};
 use crate::scene::{PreparedVoxel, TopLevel, VoxelSource};
 use crate::tile::Rect;
 use glam::Vec3;
 use std::sync::Arc;
-use std::time::Instant;
 
 /// What every packet of a frame reads.
 pub(crate) struct Ctx<'a> {
@@ -190,10 +190,10 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
             match self.stage {
                 Stage::Primary | Stage::Shadow | Stage::Reflect => {
                     let shadow = self.stage == Stage::Shadow;
-                    let started = shadow.then(Instant::now);
+                    let started = shadow.then(clock::ticks);
                     let step = self.trav.run(&mut self.packet, ctx.top, source);
                     if let Some(s) = started {
-                        stats.shadow_seconds += s.elapsed().as_secs_f64();
+                        stats.shadow_ticks += clock::ticks().saturating_sub(s);
                     }
                     if let Step::Missing(id) = step {
                         return Step::Missing(id);

@@ -9,6 +9,7 @@
 //! - [`image`]: PNG, and the depth/primitive-id comparison formats.
 
 pub mod camera;
+pub mod clock;
 pub mod image;
 mod job;
 pub mod packet;

@@ -8,6 +8,7 @@
 #![allow(clippy::needless_range_loop)]
 
 use crate::camera::{Camera, CameraBasis};
+use crate::clock::Calibration;
 pub use crate::job::depth_grey;
 use crate::job::{Ctx, PacketJob, Region};
 use crate::packet::Step;
@@ -169,8 +170,11 @@ pub struct FrameStats {
     pub reflection_rays: u64,
     pub hits: u64,
     pub seconds: f64,
-    /// Thread time spent in shadow packets, summed over threads.
+    /// Thread time spent in shadow packets, summed over threads (set by
+    /// [`render`] from `shadow_ticks`).
     pub shadow_seconds: f64,
+    /// The same in [`crate::clock::ticks`].
+    pub shadow_ticks: u64,
     pub voxels_visited: u64,
 }
 
@@ -237,6 +241,7 @@ pub fn render(
     });
     let missing = Mutex::new(None);
     let start = Instant::now();
+    let calibration = Calibration::start();
     std::thread::scope(|scope| {
         for _ in 0..settings.threads.max(1) {
             scope.spawn(|| loop {
@@ -257,6 +262,7 @@ pub fn render(
     });
     let mut frame = frame.into_inner().unwrap_or_else(|p| p.into_inner());
     frame.stats.seconds = start.elapsed().as_secs_f64();
+    frame.stats.shadow_seconds = frame.stats.shadow_ticks as f64 * calibration.seconds_per_tick();
     match missing.into_inner().unwrap_or_else(|p| p.into_inner()) {
         Some(id) => Err(id),
         None => Ok(frame),
@@ -282,7 +288,7 @@ fn merge(frame: &Mutex<Frame>, out: TileOut) {
     s.reflection_rays += out.stats.reflection_rays;
     s.occluded += out.stats.occluded;
     s.hits += out.stats.hits;
-    s.shadow_seconds += out.stats.shadow_seconds;
+    s.shadow_ticks += out.stats.shadow_ticks;
     s.voxels_visited += out.stats.voxels_visited;
 }
 
