@@ -70,3 +70,29 @@ impl Calibration {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ticks_advance_and_calibrate_to_a_positive_rate() {
+        let calibration = Calibration::start();
+        let a = ticks();
+        // Work the clock can see, whatever its resolution.
+        let until = Instant::now() + std::time::Duration::from_millis(2);
+        while Instant::now() < until {
+            std::hint::spin_loop();
+        }
+        let b = ticks();
+        assert!(b > a, "the clock did not advance: {a} then {b}");
+        let rate = calibration.seconds_per_tick();
+        assert!(rate.is_finite() && rate > 0.0, "seconds per tick {rate}");
+        // The stretch measured in ticks is at least the 2 ms waited.
+        assert!(
+            (b - a) as f64 * rate >= 0.002 * 0.5,
+            "{} ticks at {rate} s",
+            b - a
+        );
+    }
+}
