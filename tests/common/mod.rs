@@ -27,13 +27,14 @@ pub fn plant_db(dir: &Path, triangles: u64) -> PathBuf {
     db
 }
 
-/// A free UDP port on 127.0.0.1 (QUIC listens on UDP).
-pub fn free_port() -> u16 {
-    std::net::UdpSocket::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
+/// `N` distinct free UDP ports on 127.0.0.1 (QUIC listens on UDP). The
+/// sockets are held until all are chosen: binding and dropping one at a
+/// time can hand out the same port twice.
+pub fn free_ports<const N: usize>() -> [u16; N] {
+    let sockets: Vec<std::net::UdpSocket> = (0..N)
+        .map(|_| std::net::UdpSocket::bind("127.0.0.1:0").unwrap())
+        .collect();
+    std::array::from_fn(|i| sockets[i].local_addr().unwrap().port())
 }
 
 /// A walkthrough of `frames` cameras from outside the model to inside.
@@ -61,6 +62,7 @@ pub fn config_text(
     extra_clients: &str,
     links: &str,
 ) -> String {
+    let ports = free_ports::<4>();
     format!(
         r#"
 [scene]
@@ -108,10 +110,10 @@ dir = "{certs}"
         path = path.display(),
         out = dir.join("out").display(),
         certs = dir.join("certs").display(),
-        p0 = free_port(),
-        p1 = free_port(),
-        p2 = free_port(),
-        p3 = free_port(),
+        p0 = ports[0],
+        p1 = ports[1],
+        p2 = ports[2],
+        p3 = ports[3],
     )
 }
 
