@@ -13,10 +13,29 @@ use dray_runtime::Bus;
 use std::io::{BufRead, BufReader};
 use std::process::{Child, Command, Stdio};
 use std::sync::mpsc;
-use std::time::Duration;
+use std::time::{Duration, Instant};
+
+/// A running `dray cluster`, stopped (with its nodes) when dropped, so a
+/// failing test leaves no processes behind.
+struct ClusterProcess(Child);
+
+impl Drop for ClusterProcess {
+    fn drop(&mut self) {
+        if matches!(self.0.try_wait(), Ok(None)) {
+            // SIGTERM lets the supervisor stop its nodes.
+            let _ = Command::new("kill").arg(self.0.id().to_string()).status();
+            let deadline = Instant::now() + Duration::from_secs(20);
+            while matches!(self.0.try_wait(), Ok(None)) && Instant::now() < deadline {
+                std::thread::sleep(Duration::from_millis(50));
+            }
+            let _ = self.0.kill();
+            let _ = self.0.wait();
+        }
+    }
+}
 
 /// Starts `dray cluster CONFIG --json`; stdout lines arrive on the channel.
-fn start_cluster(config: &std::path::Path) -> (Child, mpsc::Receiver<String>) {
+fn start_cluster(config: &std::path::Path) -> (ClusterProcess, mpsc::Receiver<String>) {
     let mut child = Command::new(env!("CARGO_BIN_EXE_dray"))
         .args(["cluster", config.to_str().unwrap(), "--json"])
         .env("RUST_LOG", "warn")
@@ -33,7 +52,7 @@ fn start_cluster(config: &std::path::Path) -> (Child, mpsc::Receiver<String>) {
             }
         }
     });
-    (child, rx)
+    (ClusterProcess(child), rx)
 }
 
 /// Reads lines until `pred` matches one; returns every line read.
@@ -70,17 +89,79 @@ fn kill(pid: u32) {
     assert!(ok, "kill {pid}");
 }
 
-/// Waits for the cluster to exit successfully and returns its summary.
-fn finish(mut child: Child, rx: &mpsc::Receiver<String>) -> serde_json::Value {
-    let status = child.wait().unwrap();
-    let lines: Vec<String> = rx.try_iter().collect();
+/// Waits (at most 5 minutes) for the cluster to exit successfully; returns
+/// its summary and the rest of its output.
+fn finish(
+    mut cluster: ClusterProcess,
+    rx: &mpsc::Receiver<String>,
+) -> (serde_json::Value, Vec<String>) {
+    let deadline = Instant::now() + Duration::from_secs(300);
+    let status = loop {
+        if let Some(status) = cluster.0.try_wait().unwrap() {
+            break status;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "dray cluster still runs after 5 minutes"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    // Everything it printed, up to the end of its stdout (the summary is
+    // the last line, and may still be in the pipe when it exits).
+    let mut lines = Vec::new();
+    while let Ok(line) = rx.recv_timeout(Duration::from_secs(30)) {
+        lines.push(line);
+    }
     assert!(status.success(), "dray cluster failed: {lines:#?}");
     let json = lines
         .iter()
         .rev()
         .find(|l| l.starts_with('{'))
         .unwrap_or_else(|| panic!("no summary in {lines:#?}"));
-    serde_json::from_str(json).unwrap()
+    (serde_json::from_str(json).unwrap(), lines)
+}
+
+/// Waits until the display has shown `frames` frames (its metrics file
+/// grows a line a frame), so that what happens next is mid-walk.
+fn wait_for_frames(dir: &std::path::Path, frames: usize) {
+    let csv = dir.join("out").join("metrics.csv");
+    let deadline = Instant::now() + Duration::from_secs(120);
+    loop {
+        let shown =
+            std::fs::read_to_string(&csv).map_or(0, |t| t.lines().count().saturating_sub(1));
+        if shown >= frames {
+            return;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "only {shown} frames shown after 2 minutes"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// Every frame of the walk shown, whole.
+fn assert_complete(summary: &serde_json::Value, frames: usize) {
+    assert_eq!(frames_done(summary), frames, "{summary:#}");
+    assert_eq!(summary["complete"], true, "{summary:#}");
+    assert_eq!(summary["missing_pixels"], 0, "{summary:#}");
+}
+
+/// Starts a walk of `frames` frames with `clients` clients, kills `node`
+/// once two frames are shown, and returns the summary, the pid killed and
+/// the cluster's output.
+fn kill_mid_walk(frames: u32, clients: u32, node: &str) -> (serde_json::Value, u32, Vec<String>) {
+    let (dir, config) = setup(frames, clients);
+    let (cluster, rx) = start_cluster(&config);
+    let mut lines = until(&rx, |l| {
+        l.starts_with("all ") && l.ends_with("nodes joined")
+    });
+    wait_for_frames(dir.path(), 2);
+    let pid = pid_of(&lines, node);
+    kill(pid);
+    let (summary, rest) = finish(cluster, &rx);
+    lines.extend(rest);
+    (summary, pid, lines)
 }
 
 fn frames_done(summary: &serde_json::Value) -> usize {
@@ -101,29 +182,24 @@ fn setup(frames: u32, clients: u32) -> (tempfile::TempDir, std::path::PathBuf) {
 
 #[test]
 fn killing_a_client_mid_walkthrough_loses_no_tile() {
-    let (_dir, config) = setup(20, 3);
-    let (child, rx) = start_cluster(&config);
-    let lines = until(&rx, |l| {
-        l.starts_with("all ") && l.ends_with("nodes joined")
-    });
-    kill(pid_of(&lines, "client-1"));
-    let summary = finish(child, &rx);
-    assert_eq!(frames_done(&summary), 20, "{summary:#}");
-    for f in summary["frames"].as_array().unwrap() {
+    let (summary, _, _) = kill_mid_walk(60, 3, "client-1");
+    assert_complete(&summary, 60);
+    let frames = summary["frames"].as_array().unwrap();
+    for f in frames {
         assert_eq!(f["tiles"], 12 * 8, "{f}");
     }
+    // It rendered before it died, and the others finished the walk.
+    let by = |f: &serde_json::Value| f["tiles_per_client"].as_str().unwrap().to_string();
+    assert!(by(&frames[0]).contains("client-1"), "{}", by(&frames[0]));
+    assert!(!by(&frames[59]).contains("client-1"), "{}", by(&frames[59]));
 }
 
 #[test]
 fn a_store_that_dies_is_restarted_and_the_walk_completes() {
-    let (_dir, config) = setup(20, 2);
-    let (child, rx) = start_cluster(&config);
-    let lines = until(&rx, |l| {
-        l.starts_with("all ") && l.ends_with("nodes joined")
-    });
-    kill(pid_of(&lines, "store-0"));
-    let summary = finish(child, &rx);
-    assert_eq!(frames_done(&summary), 20, "{summary:#}");
+    let (summary, killed, lines) = kill_mid_walk(60, 2, "store-0");
+    assert_complete(&summary, 60);
+    // A new store-0 process was started.
+    assert_ne!(pid_of(&lines, "store-0"), killed, "{lines:#?}");
 }
 
 #[test]
@@ -131,7 +207,7 @@ fn a_stranger_certificate_is_refused_and_the_cluster_goes_on() {
     let (dir, config) = setup(40, 2);
     let cfg = dray_config::Config::load(&config).unwrap();
     let scheduler = cfg.scheduler_addr().unwrap();
-    let (child, rx) = start_cluster(&config);
+    let (cluster, rx) = start_cluster(&config);
     until(&rx, |l| {
         l.starts_with("all ") && l.ends_with("nodes joined")
     });
@@ -156,6 +232,6 @@ fn a_stranger_certificate_is_refused_and_the_cluster_goes_on() {
         joined.is_err()
     });
     assert!(refused, "the scheduler accepted a stranger");
-    let summary = finish(child, &rx);
-    assert_eq!(frames_done(&summary), 40, "{summary:#}");
+    let (summary, _) = finish(cluster, &rx);
+    assert_complete(&summary, 40);
 }

@@ -6,6 +6,7 @@
 //! - [`packet`]: SIMD ray packets and the suspendable two-level traversal.
 //! - [`render`]: frames in tiles on threads, shadows, shading.
 //! - [`tile`]: one tile, fully shaded, while voxels arrive over time.
+//! - [`clock`]: a cheap clock for timing single packets.
 //! - [`image`]: PNG, and the depth/primitive-id comparison formats.
 
 pub mod camera;

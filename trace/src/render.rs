@@ -173,8 +173,8 @@ pub struct FrameStats {
     /// Thread time spent in shadow packets, summed over threads (set by
     /// [`render`] from `shadow_ticks`).
     pub shadow_seconds: f64,
-    /// The same in [`crate::clock::ticks`].
-    pub shadow_ticks: u64,
+    /// The same in [`crate::clock::ticks`], as the packets count it.
+    pub(crate) shadow_ticks: u64,
     pub voxels_visited: u64,
 }
 
