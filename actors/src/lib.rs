@@ -87,3 +87,12 @@ pub enum ActorError {
     #[error("{0}: the bus closed")]
     BusClosed(String),
 }
+
+/// Sleeps until `deadline`, or forever without one (a `select!` branch
+/// for an optional timer).
+pub(crate) async fn sleep_until_opt(deadline: Option<tokio::time::Instant>) {
+    match deadline {
+        Some(t) => tokio::time::sleep_until(t).await,
+        None => std::future::pending().await,
+    }
+}

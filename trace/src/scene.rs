@@ -4,7 +4,7 @@
 use dray_scene::db::manifest::{BspNode, Manifest};
 use dray_scene::db::{Database, DbError};
 use dray_scene::voxel::{decode_normal, Voxel};
-use dray_scene::Aabb;
+use dray_scene::{Aabb, Ray};
 use glam::Vec3;
 use std::sync::Arc;
 
@@ -81,6 +81,55 @@ impl TopLevel {
             }
         }
         None
+    }
+}
+
+impl TopLevel {
+    /// Walks the BSP front to back along `ray` and appends to `out` the
+    /// first `max` voxels whose content box the ray enters (one ray, no
+    /// SIMD: for sampling a view coarsely, as the prefetcher does).
+    /// `stack` is scratch space.
+    pub fn voxels_along(&self, ray: &Ray, max: usize, stack: &mut Vec<u32>, out: &mut Vec<u32>) {
+        stack.clear();
+        stack.push(0);
+        let mut found = 0;
+        while let Some(n) = stack.pop() {
+            let n = n as usize;
+            let (Some(node), Some(b)) = (self.nodes.get(n), self.boxes.get(n)) else {
+                continue;
+            };
+            if b.is_empty() || b.ray_interval(ray, 0.0, f32::INFINITY).is_none() {
+                continue;
+            }
+            match *node {
+                TopNode::Leaf { voxel: Some(v) } => {
+                    out.push(v);
+                    found += 1;
+                    if found >= max {
+                        return;
+                    }
+                }
+                TopNode::Leaf { voxel: None } => {}
+                TopNode::Split {
+                    axis,
+                    pos,
+                    left,
+                    right,
+                } => {
+                    // The manifest's check keeps axis under 3.
+                    let a = axis as usize;
+                    let (o, d) = (ray.origin[a], ray.dir[a]);
+                    let left_first = o < pos || (o == pos && d <= 0.0);
+                    let (near, far) = if left_first {
+                        (left, right)
+                    } else {
+                        (right, left)
+                    };
+                    stack.push(far);
+                    stack.push(near);
+                }
+            }
+        }
     }
 }
 

@@ -52,10 +52,6 @@ pub(crate) struct PendingFrame {
     covered: Vec<bool>,
     /// Pixels covered so far (each counted once).
     pub covered_count: usize,
-    /// Tiles received, duplicates included.
-    pub tiles_received: u32,
-    /// Tiles that brought no new pixel (reassignment duplicates).
-    pub duplicate_tiles: u32,
     /// The scheduler's report, once it came.
     pub done: Option<FrameStats>,
     /// When the frame had both its report and all its pixels.
@@ -73,8 +69,6 @@ impl PendingFrame {
             primid: None,
             covered: vec![false; pixels],
             covered_count: 0,
-            tiles_received: 0,
-            duplicate_tiles: 0,
             done: None,
             completed_at: None,
             done_at: None,
@@ -201,7 +195,6 @@ impl Frames {
         if t.prim_ids.is_some() && f.primid.is_none() {
             f.primid = Some(vec![u32::MAX; total]);
         }
-        f.tiles_received += 1;
         let mut new = 0;
         for row in 0..r.h as usize {
             let y = r.y as usize + row;
@@ -222,9 +215,6 @@ impl Frames {
                     out[dst] = ids.0[src];
                 }
             }
-        }
-        if new == 0 {
-            f.duplicate_tiles += 1;
         }
         f.covered_count += new;
         f.check_complete(now);
@@ -261,14 +251,13 @@ impl Frames {
     }
 
     /// When the next frame in order got its report but still lacks pixels:
-    /// since when, and how many are missing.
-    pub fn stuck_next(&self) -> Option<(Instant, usize)> {
+    /// since when.
+    pub fn stuck_next(&self) -> Option<Instant> {
         let f = self.pending.get(&self.next_out)?;
         if f.completed_at.is_some() {
             return None;
         }
-        let at = f.done_at?;
-        Some((at, f.covered.len() - f.covered_count))
+        f.done_at
     }
 
     /// Hands out the next frame as it is (missing pixels stay black).

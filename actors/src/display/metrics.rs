@@ -216,11 +216,14 @@ impl DisplaySummary {
 
     /// Adds a shown frame's metrics.
     pub(crate) fn push(&mut self, m: FrameMetrics) {
-        self.total_rays += m.rays;
-        self.total_bytes_fetched += m.bytes_fetched;
-        self.total_misses += m.misses;
-        self.total_voxels_touched += m.voxels_touched;
-        self.total_reassigned += u64::from(m.reassigned);
+        // The figures come from a peer (the scheduler): saturating sums.
+        self.total_rays = self.total_rays.saturating_add(m.rays);
+        self.total_bytes_fetched = self.total_bytes_fetched.saturating_add(m.bytes_fetched);
+        self.total_misses = self.total_misses.saturating_add(m.misses);
+        self.total_voxels_touched = self.total_voxels_touched.saturating_add(m.voxels_touched);
+        self.total_reassigned = self
+            .total_reassigned
+            .saturating_add(u64::from(m.reassigned));
         self.total_stall_ms += m.stall_ms;
         self.max_frame_ms = self.max_frame_ms.max(m.frame_ms);
         self.frames.push(m);

@@ -5,9 +5,10 @@
 //! the [`TileDone`] pixels the clients send into images, and shows each
 //! frame once it has both all its pixels and the scheduler's [`FrameDone`]:
 //! frames are shown in order, a frame that completes early waits for the
-//! ones before it. Each shown frame gets a PNG (`frames/frame-NNNNN.png`,
-//! plus `.pfm` depth and `.primid` ids when the tiles carry them), a row of
-//! `metrics.csv` and, with a viewer, a refresh of the web page ([`web`]).
+//! ones before it. With an `output` directory each shown frame gets a row
+//! of `metrics.csv` and, with `save_frames`, a PNG
+//! (`frames/frame-NNNNN.png`, plus `.pfm` depth and `.primid` ids when the
+//! tiles carry them); with a viewer, a refresh of the web page ([`web`]).
 //!
 //! In interactive mode ([`DisplayOptions::interactive`]) the camera comes
 //! from a user instead: the display starts from the first camera and
@@ -531,10 +532,7 @@ pub async fn run_display_until(
     while d.opts.interactive || d.frames.next_out() < d.total() {
         // A frame whose report came but whose pixels do not is shown anyway
         // after a grace time; a camera that could not be sent is retried.
-        let stuck = d
-            .frames
-            .stuck_next()
-            .map(|(at, _)| at + MISSING_PIXELS_GRACE);
+        let stuck = d.frames.stuck_next().map(|at| at + MISSING_PIXELS_GRACE);
         let deadline = match (stuck, d.retry_at) {
             (Some(a), Some(b)) => Some(a.min(b)),
             (a, b) => a.or(b),
@@ -556,7 +554,7 @@ pub async fn run_display_until(
                 }
                 continue;
             }
-            _ = sleep_until_opt(deadline) => {
+            _ = crate::sleep_until_opt(deadline) => {
                 let now = Instant::now();
                 if stuck.is_some_and(|t| t <= now) {
                     if let Some(ready) = d.frames.force_next(now) {
@@ -615,13 +613,6 @@ pub async fn run_display_until(
 async fn next_move(rx: &mut Option<tokio::sync::mpsc::Receiver<Move>>) -> Option<Move> {
     match rx {
         Some(rx) => rx.recv().await,
-        None => std::future::pending().await,
-    }
-}
-
-async fn sleep_until_opt(deadline: Option<Instant>) {
-    match deadline {
-        Some(t) => tokio::time::sleep_until(t).await,
         None => std::future::pending().await,
     }
 }

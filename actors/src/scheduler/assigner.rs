@@ -42,12 +42,6 @@ pub async fn run_assigner(mut mb: Mailbox, opts: AssignerOptions) -> Result<(), 
     let mut dropped = 0u64;
     let mut retry_at: Option<tokio::time::Instant> = None;
     loop {
-        let wake = async {
-            match retry_at {
-                Some(t) => tokio::time::sleep_until(t).await,
-                None => std::future::pending().await,
-            }
-        };
         tokio::select! {
             d = mb.recv() => match d {
                 None => return Ok(()),
@@ -86,7 +80,7 @@ pub async fn run_assigner(mut mb: Mailbox, opts: AssignerOptions) -> Result<(), 
                 },
                 Some(_) => {}
             },
-            _ = wake => retry_at = None,
+            _ = crate::sleep_until_opt(retry_at) => retry_at = None,
         }
         if assigning.is_none() && retry_at.is_none() {
             if let Some(u) = queue.pop_front() {

@@ -4,7 +4,9 @@
 //!   the frame number), queues at most [`MAX_QUEUED_FRAMES`] of them and
 //!   releases one frame at a time to the scheduler ([`FrameStart`]): the
 //!   next as soon as the scheduler reports the previous one fully handed out
-//!   ([`FrameAssigned`]), so two frames are in flight (double buffering).
+//!   ([`FrameAssigned`]), so the clients start on the next frame while the
+//!   last tiles of the previous one finish (double buffering; how many
+//!   frames are outstanding in all is the display's `frames_ahead`).
 //! - [`run_scheduler`]: cuts each frame into [`TileGrid`] tiles and gives
 //!   them to clients as they ask ([`RequestWork`] credits), oldest frame
 //!   first. With affinity a client gets first the tiles it rendered in the
@@ -33,8 +35,6 @@ mod sched;
 mod tiles;
 
 pub use assigner::{run_assigner, AssignerOptions, MAX_QUEUED_FRAMES};
-pub use prefetch::{
-    plan_hints, predict_camera, run_prefetcher, voxels_along, PrefetcherOptions, PrefetcherSummary,
-};
+pub use prefetch::{run_prefetcher, PrefetcherOptions, PrefetcherSummary};
 pub use sched::{run_scheduler, SchedulerOptions, SchedulerSummary};
 pub use tiles::TileGrid;

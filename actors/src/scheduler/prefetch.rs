@@ -13,7 +13,7 @@ use dray_protocol::{
 use dray_runtime::{Delivery, Mailbox};
 use dray_scene::db::manifest::Manifest;
 use dray_scene::Ray;
-use dray_trace::scene::{TopLevel, TopNode};
+use dray_trace::scene::TopLevel;
 use glam::Vec3;
 use std::collections::HashMap;
 use std::time::Duration;
@@ -73,57 +73,6 @@ pub fn predict_camera(prev: Option<(u64, &Camera)>, last: (u64, &Camera), next: 
     }
 }
 
-/// Walks the high-level BSP front to back along `ray` and appends to `out`
-/// the first `max` voxels whose content box the ray enters. `stack` is
-/// scratch space.
-pub fn voxels_along(
-    top: &TopLevel,
-    ray: &Ray,
-    max: usize,
-    stack: &mut Vec<u32>,
-    out: &mut Vec<u32>,
-) {
-    stack.clear();
-    stack.push(0);
-    let mut found = 0;
-    while let Some(n) = stack.pop() {
-        let n = n as usize;
-        let (Some(node), Some(b)) = (top.nodes.get(n), top.boxes.get(n)) else {
-            continue;
-        };
-        if b.is_empty() || b.ray_interval(ray, 0.0, f32::INFINITY).is_none() {
-            continue;
-        }
-        match *node {
-            TopNode::Leaf { voxel: Some(v) } => {
-                out.push(v);
-                found += 1;
-                if found >= max {
-                    return;
-                }
-            }
-            TopNode::Leaf { voxel: None } => {}
-            TopNode::Split {
-                axis,
-                pos,
-                left,
-                right,
-            } => {
-                let a = axis as usize % 3;
-                let (o, d) = (ray.origin[a], ray.dir[a]);
-                let left_first = o < pos || (o == pos && d <= 0.0);
-                let (near, far) = if left_first {
-                    (left, right)
-                } else {
-                    (right, left)
-                };
-                stack.push(far);
-                stack.push(near);
-            }
-        }
-    }
-}
-
 /// Per client node, the voxels its tiles of `camera` will probably enter,
 /// most urgent first (nearest along the rays, then most often), at most
 /// [`MAX_PREFETCH_IDS`]. Sample pixels are the centre pixels of each
@@ -166,7 +115,7 @@ pub fn plan_hints(
                 dir: basis.direction(x, y),
             };
             hits.clear();
-            voxels_along(top, &ray, voxels_per_ray as usize, &mut stack, &mut hits);
+            top.voxels_along(&ray, voxels_per_ray as usize, &mut stack, &mut hits);
             for (rank, &v) in hits.iter().enumerate() {
                 let e = per.entry(v).or_insert((u32::MAX, 0));
                 e.0 = e.0.min(rank as u32);
@@ -264,12 +213,6 @@ pub async fn run_prefetcher(
     // When to ask (again) for the manifest; None once it is here.
     let mut ask_at = Some(Instant::now());
     loop {
-        let wake = async {
-            match ask_at {
-                Some(t) => tokio::time::sleep_until(t).await,
-                None => std::future::pending().await,
-            }
-        };
         tokio::select! {
             d = mb.recv() => match d {
                 None => return Ok(p.summary),
@@ -317,7 +260,7 @@ pub async fn run_prefetcher(
                 }
                 Some(Delivery::PeerDown { .. }) => {}
             },
-            _ = wake => {
+            _ = crate::sleep_until_opt(ask_at) => {
                 let to = &stores[asked % stores.len()];
                 asked += 1;
                 if let Err(e) = mb.send(to, Message::FetchManifest(FetchManifest {})).await {

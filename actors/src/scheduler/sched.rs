@@ -98,8 +98,8 @@ struct Frame {
     pool: Vec<usize>,
     /// Tiles to give to another client before any fresh one.
     retry: VecDeque<usize>,
+    /// Tiles never assigned yet.
     fresh_left: usize,
-    assigned_once: usize,
     announced: bool,
     done: usize,
     first_assign: Option<Instant>,
@@ -133,7 +133,6 @@ impl Frame {
             pool: Vec::new(),
             retry: VecDeque::new(),
             fresh_left: n,
-            assigned_once: 0,
             announced: false,
             done: 0,
             first_assign: None,
@@ -263,18 +262,23 @@ impl Frame {
         stats.clients = BoundedVec::new(clients).unwrap_or_default();
         let mut names: Vec<Name> = Vec::new();
         let mut index: HashMap<&Name, u32> = HashMap::new();
+        // Tiles of clients past the message's limit count as unowned.
         let owners = self
             .owners
             .iter()
             .map(|o| match o {
                 None => u32::MAX,
-                Some(n) => *index.entry(n).or_insert_with(|| {
-                    names.push(n.clone());
-                    names.len() as u32 - 1
-                }),
+                Some(n) => match index.get(n) {
+                    Some(&i) => i,
+                    None if names.len() < MAX_STATS_CLIENTS => {
+                        names.push(n.clone());
+                        index.insert(n, names.len() as u32 - 1);
+                        names.len() as u32 - 1
+                    }
+                    None => u32::MAX,
+                },
             })
             .collect();
-        names.truncate(MAX_STATS_CLIENTS);
         let owners = TileOwners {
             frame: self.number,
             width: self.grid.width,
@@ -387,7 +391,6 @@ impl Scheduler {
                 let t = &mut frame.tiles[i];
                 if t.state == State::Fresh {
                     frame.fresh_left -= 1;
-                    frame.assigned_once += 1;
                 }
                 t.state = State::Out;
                 t.outstanding.push((node.clone(), now));
@@ -404,7 +407,7 @@ impl Scheduler {
                         settings: frame.settings.clone(),
                     },
                 });
-                if frame.assigned_once == frame.tiles.len() && !frame.announced {
+                if frame.fresh_left == 0 && !frame.announced {
                     frame.announced = true;
                     out.push(Out::Assigned(frame.number));
                 }
@@ -443,11 +446,15 @@ impl Scheduler {
         frame.owners[i] = Some(node.clone());
         frame.times.push(s.time_us);
         let fs = &mut frame.stats;
-        fs.rays += s.rays;
-        fs.misses += u64::from(s.misses);
-        fs.bytes_fetched += s.bytes_fetched;
-        fs.voxels_touched += u64::from(s.voxels_touched);
-        fs.stall_us += s.stall_us;
+        // Sums of what a peer reports: saturating, as a hostile or broken
+        // client may report anything.
+        fs.rays = fs.rays.saturating_add(s.rays);
+        fs.misses = fs.misses.saturating_add(u64::from(s.misses));
+        fs.bytes_fetched = fs.bytes_fetched.saturating_add(s.bytes_fetched);
+        fs.voxels_touched = fs
+            .voxels_touched
+            .saturating_add(u64::from(s.voxels_touched));
+        fs.stall_us = fs.stall_us.saturating_add(s.stall_us);
         let c = frame
             .clients
             .entry(node.clone())
@@ -460,10 +467,10 @@ impl Scheduler {
                 stall_us: 0,
             });
         c.tiles += 1;
-        c.rays += s.rays;
-        c.misses += u64::from(s.misses);
-        c.bytes_fetched += s.bytes_fetched;
-        c.stall_us += s.stall_us;
+        c.rays = c.rays.saturating_add(s.rays);
+        c.misses = c.misses.saturating_add(u64::from(s.misses));
+        c.bytes_fetched = c.bytes_fetched.saturating_add(s.bytes_fetched);
+        c.stall_us = c.stall_us.saturating_add(s.stall_us);
         if frame.done == frame.tiles.len() {
             let number = frame.number;
             self.complete(number, out);
@@ -546,7 +553,7 @@ impl Scheduler {
     fn check_deadlines(&mut self) {
         let now = Instant::now();
         for frame in self.frames.values_mut() {
-            if frame.assigned_once == frame.done {
+            if frame.tiles.len() - frame.fresh_left == frame.done {
                 continue;
             }
             let median = Duration::from_micros(frame.median_time().saturating_mul(8));
