@@ -237,7 +237,7 @@ struct RenderArgs {
     /// Render every camera of this camera path (TOML keyframes, as the
     /// cluster's `render.camera_path`) instead of one view, shaded, and
     /// report frames per second: the one-process baseline of the cluster.
-    #[arg(long, conflicts_with_all = ["eye", "look", "repeat"])]
+    #[arg(long, conflicts_with_all = ["eye", "look", "up", "fov", "repeat", "out", "depth_out", "primid_out"])]
     path: Option<PathBuf>,
 }
 
@@ -546,7 +546,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
         }
         Command::Walkthrough { db, frames, out } => {
             let db = Database::open(&db)?;
-            write_walkthrough(&db, frames, &out)?;
+            let frames = write_walkthrough(&db, frames, &out)?;
             println!("{}: {frames} frames", out.display());
         }
     }
@@ -631,12 +631,14 @@ fn print_report(summary: &serde_json::Value, events: &[String], json: bool) {
     }
 }
 
-fn write_walkthrough(db: &Database, frames: u32, out: &Path) -> Result<()> {
+/// Writes the walkthrough of `db` (temporary file, then rename); returns
+/// its number of frames (`frames`, clamped to what a path may hold).
+fn write_walkthrough(db: &Database, frames: u32, out: &Path) -> Result<u32> {
     let path = CameraPath::walkthrough(&db.manifest.model_bounds, frames);
     let tmp = out.with_extension("toml.tmp");
     std::fs::write(&tmp, path.to_toml()).with_context(|| format!("writing {}", tmp.display()))?;
     std::fs::rename(&tmp, out).with_context(|| format!("writing {}", out.display()))?;
-    Ok(())
+    Ok(path.frames)
 }
 
 /// The README's first command: model, database, walkthrough and
@@ -671,7 +673,7 @@ fn demo(config: &Path, triangles: u64, frames: u32) -> Result<()> {
     print!("{}", DbInfo::from_manifest(&db.manifest).to_text());
     if let Some(walk) = &cfg.render.camera_path {
         if !walk.exists() {
-            write_walkthrough(&db, frames, walk)?;
+            let frames = write_walkthrough(&db, frames, walk)?;
             println!("{}: a walkthrough of {frames} frames", walk.display());
         }
     }

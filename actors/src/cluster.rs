@@ -443,7 +443,15 @@ struct Links {
 impl Links {
     async fn dial(&mut self, peer: Name, addr: SocketAddr, l: &LinkConfig) -> Result<(), String> {
         let target = if l.is_shaped() {
-            let local = SocketAddr::new(addr.ip(), 0);
+            // The relay runs on this machine, whatever the peer's.
+            let local = SocketAddr::new(
+                if addr.is_ipv4() {
+                    std::net::Ipv4Addr::LOCALHOST.into()
+                } else {
+                    std::net::Ipv6Addr::LOCALHOST.into()
+                },
+                0,
+            );
             let relay = UdpRelay::start(local, addr, shape(l), shape(l))
                 .await
                 .map_err(|e| format!("relay to {peer}: {e}"))?;

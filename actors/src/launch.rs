@@ -95,6 +95,24 @@ struct Proc {
     done: bool,
 }
 
+/// Waits for every node to exit (at most [`STOP_TIMEOUT`] in all) when the
+/// run ended well, and kills those still running.
+async fn stop_all(procs: &mut [Proc], wait: bool, events: &mut Vec<String>) {
+    let deadline = tokio::time::Instant::now() + STOP_TIMEOUT;
+    for p in procs.iter_mut() {
+        if let Some(c) = p.child.as_mut() {
+            if wait {
+                let left = deadline.saturating_duration_since(tokio::time::Instant::now());
+                if tokio::time::timeout(left, c.wait()).await.is_ok() {
+                    continue;
+                }
+                events.push(format!("{} did not stop in time and was killed", p.name));
+            }
+            let _ = c.kill().await;
+        }
+    }
+}
+
 fn status_text(s: &ExitStatus) -> String {
     #[cfg(unix)]
     {
@@ -365,26 +383,30 @@ pub async fn cluster(
             }
         }
     };
-    // The display told everyone to stop; wait for them, then make sure.
-    let deadline = tokio::time::Instant::now() + STOP_TIMEOUT;
-    for p in procs.iter_mut() {
-        if let Some(c) = p.child.as_mut() {
-            if outcome.is_ok() {
-                let left = deadline.saturating_duration_since(tokio::time::Instant::now());
-                if tokio::time::timeout(left, c.wait()).await.is_ok() {
-                    continue;
+    // The display told everyone to stop: wait for them while reading what
+    // they print last (the summary may be among it, and a node blocked on
+    // a full pipe could not exit), then read their output to its end.
+    drop(tx);
+    {
+        let mut summary_from = |ev: Event| {
+            if let Event::Line { line, .. } = ev {
+                if let Some(json) = line.strip_prefix("summary ") {
+                    summary = serde_json::from_str(json).ok();
                 }
-                events.push(format!("{} did not stop in time and was killed", p.name));
             }
-            let _ = c.kill().await;
+        };
+        let stopping = stop_all(&mut procs, outcome.is_ok(), &mut events);
+        tokio::pin!(stopping);
+        loop {
+            tokio::select! {
+                _ = &mut stopping => break,
+                Some(ev) = rx.recv() => summary_from(ev),
+            }
         }
-    }
-    // Drain what the nodes printed last (the summary may be among it).
-    while let Ok(ev) = rx.try_recv() {
-        if let Event::Line { line, .. } = ev {
-            if let Some(json) = line.strip_prefix("summary ") {
-                summary = serde_json::from_str(json).ok();
-            }
+        // Every forwarder ends at its pipe's end, now that the nodes are
+        // gone.
+        while let Ok(Some(ev)) = tokio::time::timeout(STOP_TIMEOUT, rx.recv()).await {
+            summary_from(ev);
         }
     }
     outcome?;

@@ -13,6 +13,9 @@
 //!
 //! The preprocessing parameters live with the preprocessor in `dray-scene`.
 
+/// Most voxel stores a cluster may have (shards count up to 1024 too).
+pub const MAX_STORES: usize = 1024;
+
 pub use dray_protocol::Reflective;
 use serde::Deserialize;
 use std::net::SocketAddr;
@@ -420,7 +423,8 @@ pub struct LinksConfig {
     /// Between clients and stores (voxel traffic).
     #[serde(default)]
     pub client_store: LinkConfig,
-    /// Between clients and the scheduler (tiles).
+    /// Between clients and the scheduler (tiles), and between clients and
+    /// the display (pixels).
     #[serde(default)]
     pub client_scheduler: LinkConfig,
     /// Between the display and the scheduler.
@@ -611,6 +615,12 @@ impl Config {
         if self.stores.is_empty() {
             return Err(invalid("stores", "at least one store is needed"));
         }
+        if self.stores.len() > MAX_STORES {
+            return Err(invalid(
+                "stores",
+                format!("{} stores, at most {MAX_STORES}", self.stores.len()),
+            ));
+        }
         for (i, s) in self.stores.iter().enumerate() {
             let key = format!("stores[{i}].address");
             let a = parse_addr(&key, &s.address)?;
@@ -635,6 +645,17 @@ impl Config {
         let c = &self.clients;
         if c.count == 0 {
             return Err(invalid("clients.count", "at least one client is needed"));
+        }
+        // The frame statistics and tile owners name at most this many.
+        if c.count as usize > dray_protocol::MAX_STATS_CLIENTS {
+            return Err(invalid(
+                "clients.count",
+                format!(
+                    "{} is more than {} clients",
+                    c.count,
+                    dray_protocol::MAX_STATS_CLIENTS
+                ),
+            ));
         }
         if c.threads == 0 || c.threads > 1024 {
             return Err(invalid(
@@ -734,7 +755,11 @@ impl Config {
             out.push(shard);
         }
         // Every residue of the common modulus must be served.
+        // Stops growing past the limit, so that no product overflows.
         let lcm = out.iter().fold(1u64, |l, &(_, c)| {
+            if l > 1 << 16 {
+                return l;
+            }
             let (mut a, mut b) = (l, u64::from(c));
             while b != 0 {
                 (a, b) = (b, a % b);

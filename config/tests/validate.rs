@@ -116,6 +116,30 @@ fn mistakes_name_their_key() {
         "links.client_store.loss",
         "[0, 1)",
     );
+    assert_names(
+        broken("count = 4", "count = 5000"),
+        "clients.count",
+        "more than 1024",
+    );
+}
+
+/// Shard counts whose common multiple overflows any integer are refused,
+/// not a panic.
+#[test]
+fn shard_counts_of_large_primes_are_refused() {
+    let primes = [997, 991, 983, 977, 971, 967, 953, 947];
+    let mut text = example_text();
+    for (i, p) in primes.iter().enumerate() {
+        text.push_str(&format!(
+            "\n[[stores]]\naddress = \"127.0.0.1:{}\"\nshard = \"0/{p}\"\n",
+            7500 + i
+        ));
+    }
+    assert_names(
+        Config::parse(&text).unwrap_err(),
+        "stores",
+        "too many or too mixed",
+    );
 }
 
 #[test]

@@ -34,10 +34,12 @@ use serde::{Deserialize, Serialize};
 pub type VoxelId = u32;
 
 /// Version of the wire protocol; both ends of a connection must agree.
-pub const PROTOCOL_VERSION: u32 = 1;
+/// 2: the distributed renderer's messages (manifest, tile reports, frame
+/// start and assignment, tile owners) and the shading render settings.
+pub const PROTOCOL_VERSION: u32 = 2;
 
 /// ALPN protocol id spoken over QUIC.
-pub const ALPN: &[u8] = b"dray/1";
+pub const ALPN: &[u8] = b"dray/2";
 
 /// Largest compressed voxel blob a store may send.
 pub const MAX_VOXEL_BYTES: usize = 64 << 20;

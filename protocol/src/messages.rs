@@ -283,8 +283,9 @@ pub struct Shutdown {
     pub reason: String,
 }
 
-/// A client asks a store for the database's manifest (the high-level BSP
-/// and the voxel table), so that clients need no copy of the database.
+/// A client (or the scheduler's prefetcher) asks a store for the
+/// database's manifest (the high-level BSP and the voxel table), so that
+/// neither needs a copy of the database.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct FetchManifest {}
 
@@ -374,9 +375,9 @@ pub enum Message {
     Pong(Ping),
     /// Any → any.
     Shutdown(Shutdown),
-    /// Client → store.
+    /// Client or prefetcher → store.
     FetchManifest(FetchManifest),
-    /// Store → client.
+    /// Store → client or prefetcher.
     ManifestData(ManifestData),
     /// Client → scheduler.
     TileReport(TileReport),
