@@ -102,48 +102,26 @@ impl StoreRoutes {
         if stores.is_empty() {
             return Err("no store".into());
         }
-        let lcm = stores
-            .iter()
-            .fold(1u64, |l, (s, _)| lcm(l, u64::from(s.count)));
-        if lcm > 1 << 16 {
-            return Err("shard counts are too many or too mixed".into());
-        }
-        for r in 0..lcm as u32 {
-            if !stores.iter().any(|(s, _)| s.owns(r)) {
-                return Err(format!(
-                    "no store serves voxels {r} modulo {lcm} (check the shards)"
-                ));
-            }
-        }
+        let shards: Vec<(u32, u32)> = stores.iter().map(|(s, _)| (s.index, s.count)).collect();
+        dray_config::check_shards(&shards)?;
         Ok(StoreRoutes { stores })
     }
 
-    /// The store to ask for voxel `id`.
-    pub fn store_for(&self, id: VoxelId) -> &Address {
-        let owners: Vec<&Address> = self
-            .stores
-            .iter()
-            .filter(|(s, _)| s.owns(id))
-            .map(|(_, a)| a)
-            .collect();
-        owners[(id as usize / self.stores.len().max(1)) % owners.len()]
+    /// The store to ask for voxel `id` the `attempt`-th time (from 0):
+    /// where several stores serve it, the ids spread over them and each
+    /// new attempt asks the next one.
+    pub fn store_for(&self, id: VoxelId, attempt: u32) -> &Address {
+        let owners = || self.stores.iter().filter(|(s, _)| s.owns(id));
+        // `new` checked that every id has an owner.
+        let count = owners().count().max(1);
+        let k = (id as usize / self.stores.len() + attempt as usize) % count;
+        owners().nth(k).map_or(&self.stores[0].1, |(_, a)| a)
     }
 
     /// Every store, in order.
     pub fn all(&self) -> impl Iterator<Item = &Address> {
         self.stores.iter().map(|(_, a)| a)
     }
-}
-
-fn lcm(a: u64, b: u64) -> u64 {
-    fn gcd(a: u64, b: u64) -> u64 {
-        if b == 0 {
-            a
-        } else {
-            gcd(b, a % b)
-        }
-    }
-    a / gcd(a, b) * b
 }
 
 #[cfg(test)]
@@ -157,8 +135,10 @@ mod tests {
             (Shard { index: 1, count: 2 }, store(1)),
         ])
         .unwrap();
-        assert_eq!(routes.store_for(4), &store(0));
-        assert_eq!(routes.store_for(7), &store(1));
+        assert_eq!(routes.store_for(4, 0), &store(0));
+        assert_eq!(routes.store_for(7, 0), &store(1));
+        // One owner: every attempt asks it.
+        assert_eq!(routes.store_for(7, 3), &store(1));
         let gap = StoreRoutes::new(vec![(Shard { index: 0, count: 2 }, store(0))]);
         assert!(gap.unwrap_err().contains("1 modulo 2"));
     }

@@ -1,7 +1,9 @@
 //! One set of render settings, three spellings: the config's `[render]`
 //! section, the wire's [`dray_protocol::RenderSettings`], and the kernel's
-//! [`dray_trace::render::RenderSettings`]. The conversions live here so that
-//! a client and `dray render` shade a pixel with exactly the same numbers.
+//! [`dray_trace::render::RenderSettings`]. The conversions live here; `dray
+//! render` builds its kernel settings from its flags and shares the
+//! reflection rule, and the cluster tests check that both give the same
+//! pixels, bit for bit.
 
 use dray_protocol as wire;
 use dray_trace::render::{Isa, ReflectRule, RenderSettings};

@@ -16,6 +16,38 @@
 /// Most voxel stores a cluster may have (shards count up to 1024 too).
 pub const MAX_STORES: usize = 1024;
 
+/// Whether shards `(index, count)` together serve every voxel id: every
+/// residue of their counts' common multiple must be some shard's. The
+/// problem in words otherwise (a count of 0, an index not below its
+/// count, counts too many or too mixed, a residue nobody serves).
+pub fn check_shards(shards: &[(u32, u32)]) -> Result<(), String> {
+    if let Some(&(i, c)) = shards.iter().find(|&&(i, c)| c == 0 || i >= c) {
+        return Err(format!("shard {i}/{c} is not of the form I/N with I < N"));
+    }
+    // Stops growing past the limit, so that no product overflows.
+    let lcm = shards.iter().fold(1u64, |l, &(_, c)| {
+        if l > 1 << 16 {
+            return l;
+        }
+        let (mut a, mut b) = (l, u64::from(c));
+        while b != 0 {
+            (a, b) = (b, a % b);
+        }
+        l / a * u64::from(c)
+    });
+    if lcm > 1 << 16 {
+        return Err("shard counts are too many or too mixed".into());
+    }
+    for r in 0..lcm as u32 {
+        if !shards.iter().any(|&(i, c)| r % c == i) {
+            return Err(format!(
+                "no store serves the voxels whose id is {r} modulo {lcm}"
+            ));
+        }
+    }
+    Ok(())
+}
+
 pub use dray_protocol::Reflective;
 use serde::Deserialize;
 use std::net::SocketAddr;
@@ -754,29 +786,7 @@ impl Config {
             };
             out.push(shard);
         }
-        // Every residue of the common modulus must be served.
-        // Stops growing past the limit, so that no product overflows.
-        let lcm = out.iter().fold(1u64, |l, &(_, c)| {
-            if l > 1 << 16 {
-                return l;
-            }
-            let (mut a, mut b) = (l, u64::from(c));
-            while b != 0 {
-                (a, b) = (b, a % b);
-            }
-            l / a * u64::from(c)
-        });
-        if lcm > 1 << 16 {
-            return Err(invalid("stores", "shard counts are too many or too mixed"));
-        }
-        for r in 0..lcm as u32 {
-            if !out.iter().any(|&(i, c)| r % c == i) {
-                return Err(invalid(
-                    "stores",
-                    format!("no store serves the voxels whose id is {r} modulo {lcm}"),
-                ));
-            }
-        }
+        check_shards(&out).map_err(|problem| invalid("stores", problem))?;
         Ok(out)
     }
 

@@ -174,11 +174,6 @@ impl VoxelCache {
         self.evicted.load(Ordering::Relaxed)
     }
 
-    /// The byte budget.
-    pub fn budget(&self) -> u64 {
-        self.budget
-    }
-
     /// Ids of the resident voxels (for tests and logs).
     pub fn resident_ids(&self) -> Vec<u32> {
         (0..self.slots.len() as u32)

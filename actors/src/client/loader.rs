@@ -9,7 +9,9 @@
 //! and fetched again; a [`VoxelError`] is retried after a short delay;
 //! after [`MAX_TRIES`] failures the waiters get a [`LoadError`]. A fetch
 //! whose store goes down is sent again when the store is back
-//! ([`Loader::peer_up`]) or when it times out ([`FETCH_TIMEOUT`]).
+//! ([`Loader::peer_up`]) or when it times out ([`FETCH_TIMEOUT`]), each
+//! time to the next store that serves the voxel; a prefetch that times out
+//! is dropped.
 
 use super::cache::VoxelCache;
 use crate::names::StoreRoutes;
@@ -129,6 +131,8 @@ struct Pending {
     state: State,
     waiters: Vec<oneshot::Sender<Answer>>,
     failures: u32,
+    /// Fetches sent so far (each asks the next store serving the voxel).
+    sends: u32,
     /// Asked for by a hint only (so far).
     prefetch: bool,
 }
@@ -215,13 +219,7 @@ impl Loader {
         match self.pending.get_mut(&id) {
             Some(p) => {
                 p.waiters.push(req.reply);
-                if p.prefetch {
-                    p.prefetch = false;
-                    if matches!(p.state, State::Queued) {
-                        // Queued as a hint: move it ahead of the hints.
-                        self.queue.push_back(id);
-                    }
-                }
+                p.prefetch = false;
             }
             None => {
                 self.pending.insert(
@@ -230,6 +228,7 @@ impl Loader {
                         state: State::Queued,
                         waiters: vec![req.reply],
                         failures: 0,
+                        sends: 0,
                         prefetch: false,
                     },
                 );
@@ -274,6 +273,7 @@ impl Loader {
                     state: State::Queued,
                     waiters: Vec::new(),
                     failures: 0,
+                    sends: 0,
                     prefetch: true,
                 },
             );
@@ -283,8 +283,9 @@ impl Loader {
     }
 
     fn send(&mut self, id: u32) {
-        let store = self.routes.store_for(id).clone();
         if let Some(p) = self.pending.get_mut(&id) {
+            let store = self.routes.store_for(id, p.sends).clone();
+            p.sends = p.sends.wrapping_add(1);
             if !matches!(p.state, State::InFlight { .. }) {
                 self.inflight += 1;
             }
@@ -433,7 +434,7 @@ impl Loader {
     /// Retries whose delay is over, fetches that timed out.
     pub fn tick(&mut self) {
         let now = Instant::now();
-        let mut again = Vec::new();
+        let (mut again, mut dropped) = (Vec::new(), Vec::new());
         for (&id, p) in &mut self.pending {
             match p.state {
                 State::Retry(at) if at <= now => {
@@ -441,11 +442,24 @@ impl Loader {
                     self.queue.push_back(id);
                 }
                 State::InFlight { sent, ref store } if now - sent >= FETCH_TIMEOUT => {
-                    warn!(voxel = id, %store, "fetch timed out: asking again");
-                    again.push(id);
+                    if p.prefetch {
+                        // Nobody waits for it: not worth a slot.
+                        debug!(voxel = id, %store, "prefetch timed out: dropped");
+                        dropped.push(id);
+                    } else {
+                        // Asked again for as long as packets wait: a store
+                        // that died comes back (the supervisor restarts
+                        // it), and another serving the voxel is tried.
+                        warn!(voxel = id, %store, "fetch timed out: asking again");
+                        again.push(id);
+                    }
                 }
                 _ => {}
             }
+        }
+        for id in dropped {
+            self.leave_flight(id);
+            self.pending.remove(&id);
         }
         for id in again {
             self.stats.retries += 1;
