@@ -317,6 +317,9 @@ async fn display_assembles_frames_from_out_of_order_tiles_and_writes_files() {
         assert_eq!(row[col("stall_ms")].parse::<f64>().unwrap(), 0.02);
         assert_eq!(row[col("tiles_per_client")], "client-0:3 client-1:3");
         assert!(row[col("frame_ms")].parse::<f64>().unwrap() >= 0.0);
+        // The row is the summary's frame, to the CSV's three decimals.
+        let ms: f64 = row[col("frame_ms")].parse().unwrap();
+        assert!((ms - s.frames[f].frame_ms).abs() <= 0.0005 + 1e-9, "{ms}");
         assert!(row[col("fps")].parse::<f64>().unwrap() > 0.0);
     }
     let json = s.to_json();

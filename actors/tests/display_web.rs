@@ -74,9 +74,16 @@ async fn display_web_viewer_serves_page_frame_and_metrics() {
     assert_eq!(j["fps"], 25.0);
 
     // HEAD: the headers only.
+    let (status, _, png) = get(addr, "/frame.png").await;
+    assert_eq!(status, 200);
     let (status, head, body) = request(addr, b"HEAD /frame.png HTTP/1.1\r\n\r\n").await;
     assert_eq!(status, 200);
     assert!(head.contains("Content-Length: "));
+    // HEAD says the length GET sends.
+    assert!(
+        head.contains(&format!("Content-Length: {}", png.len())),
+        "{head}"
+    );
     assert!(body.is_empty());
 }
 

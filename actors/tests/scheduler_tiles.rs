@@ -513,17 +513,21 @@ async fn scheduler_reassigns_the_tiles_of_a_lost_client() {
     );
     c.camera(0).await;
     // Wait until the mute client holds tiles, then cut it off.
-    loop {
-        let held = c
-            .events()
-            .iter()
-            .filter(|e| matches!(e, Event::Assigned { client: 1, .. }))
-            .count();
-        if held >= 4 {
-            break;
+    tokio::time::timeout(Duration::from_secs(60), async {
+        loop {
+            let held = c
+                .events()
+                .iter()
+                .filter(|e| matches!(e, Event::Assigned { client: 1, .. }))
+                .count();
+            if held >= 4 {
+                break;
+            }
+            tokio::time::sleep(Duration::from_millis(1)).await;
         }
-        tokio::time::sleep(Duration::from_millis(1)).await;
-    }
+    })
+    .await
+    .expect("the mute client got 4 tiles");
     c.net.disconnect(&name("scheduler"), &names::client_node(1));
     let d = c.frame_done().await;
     let n = TileGrid::new(W, H, 32).count() as u32;
