@@ -238,7 +238,7 @@ async fn connection(mut stream: TcpStream, shared: &Shared) -> io::Result<()> {
             Ok((method, path, _)) if method == "HEAD" && path == "/move" => {
                 (Response::text(405, reason(405)), false)
             }
-            Ok((method, path, query)) => (route(&path, &query, shared), method == "HEAD"),
+            Ok((method, path, query)) => (route(&path, &query, shared).await, method == "HEAD"),
         },
     };
     let head = format!(
@@ -331,7 +331,7 @@ fn take_move(query: &str, shared: &Shared) -> Response {
     }
 }
 
-fn route(path: &str, query: &str, shared: &Shared) -> Response {
+async fn route(path: &str, query: &str, shared: &Shared) -> Response {
     let latest = &shared.latest;
     match path {
         "/move" => take_move(query, shared),
@@ -358,12 +358,20 @@ fn route(path: &str, query: &str, shared: &Shared) -> Response {
                 l.png = None;
                 (frame, l.width, l.height, l.rgba.clone())
             };
-            // Encode outside the lock; the first request for a frame
-            // caches it for the others.
-            let png = match dray_trace::image::encode_png(w, h, &rgba) {
-                Ok(png) => Arc::new(png),
-                Err(e) => {
+            // Encode outside the lock and off the display's thread (a
+            // node runs one: its tiles and transport wait meanwhile); the
+            // first request for a frame caches it for the others.
+            let encoded =
+                tokio::task::spawn_blocking(move || dray_trace::image::encode_png(w, h, &rgba))
+                    .await;
+            let png = match encoded {
+                Ok(Ok(png)) => Arc::new(png),
+                Ok(Err(e)) => {
                     warn!(error = %e, "encoding the frame failed");
+                    return Response::text(500, "the frame could not be encoded");
+                }
+                Err(e) => {
+                    warn!(error = %e, "the encoding task failed");
                     return Response::text(500, "the frame could not be encoded");
                 }
             };
