@@ -16,6 +16,7 @@ use dray_scene::Ray;
 use dray_trace::scene::TopLevel;
 use glam::Vec3;
 use std::collections::HashMap;
+use std::sync::Arc;
 use std::time::Duration;
 use tokio::time::Instant;
 use tracing::{debug, info, warn};
@@ -138,7 +139,7 @@ pub fn plan_hints(
 
 struct Prefetcher {
     opts: PrefetcherOptions,
-    top: Option<TopLevel>,
+    top: Option<Arc<TopLevel>>,
     owners: Option<TileOwners>,
     /// The last two cameras, oldest first.
     cams: Vec<(u64, Camera)>,
@@ -164,16 +165,22 @@ impl Prefetcher {
             debug!(frame = next, "no usable camera to predict from");
             return;
         }
+        // Thousands of rays through the BSP: on the blocking pool, not on
+        // the scheduler node's only thread, which hands out the tiles.
+        let (top, owners) = (top.clone(), owners.clone());
         let o = &self.opts;
-        let plan = plan_hints(
-            top,
-            owners,
-            &camera,
-            o.width,
-            o.height,
-            o.step,
-            o.voxels_per_ray,
-        );
+        let (w, h, step, per_ray) = (o.width, o.height, o.step, o.voxels_per_ray);
+        let planned = tokio::task::spawn_blocking(move || {
+            plan_hints(&top, &owners, &camera, w, h, step, per_ray)
+        })
+        .await;
+        let plan = match planned {
+            Ok(plan) => plan,
+            Err(e) => {
+                warn!(frame = next, "planning the prefetch failed: {e}");
+                return;
+            }
+        };
         for (node, voxels) in plan {
             let n = voxels.len() as u64;
             let to = Address::new(node, Name::new(CLIENT).expect("valid actor name"));
@@ -220,7 +227,7 @@ pub async fn run_prefetcher(
                     Message::ManifestData(m) if p.top.is_none() => {
                         match Manifest::decode(&m.data.0) {
                             Ok(manifest) => {
-                                p.top = Some(TopLevel::from_manifest(&manifest));
+                                p.top = Some(Arc::new(TopLevel::from_manifest(&manifest)));
                                 ask_at = None;
                                 info!(voxels = manifest.voxels.len(), %from, "prefetcher has the manifest");
                             }
