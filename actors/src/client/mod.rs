@@ -118,6 +118,9 @@ async fn fetch_manifest(
     let bus = mb.handle().bus().clone();
     let stores: Vec<Address> = opts.stores.all().cloned().collect();
     let mut next = 0;
+    // Manifests that did not decode: another store is asked, until each
+    // has sent a bad one twice.
+    let mut unusable = 0;
     loop {
         let pick = (0..stores.len())
             .map(|k| (next + k) % stores.len())
@@ -152,15 +155,23 @@ async fn fetch_manifest(
                 }
                 Ok(None) => return Ok(Start::Stop),
                 Ok(Some(Delivery::Message { from, msg })) => match msg {
-                    Message::ManifestData(m) => {
-                        let manifest =
-                            Manifest::decode(&m.data.0).map_err(|e| ActorError::Peer {
-                                actor: actor.into(),
-                                message: format!("the manifest from {from} is unusable: {e}"),
-                            })?;
-                        info!(%actor, %from, voxels = manifest.voxels.len(), "manifest received");
-                        return Ok(Start::Ready(manifest));
-                    }
+                    Message::ManifestData(m) => match Manifest::decode(&m.data.0) {
+                        Ok(manifest) => {
+                            info!(%actor, %from, voxels = manifest.voxels.len(), "manifest received");
+                            return Ok(Start::Ready(manifest));
+                        }
+                        Err(e) => {
+                            unusable += 1;
+                            if unusable >= 2 * stores.len() {
+                                return Err(ActorError::Peer {
+                                    actor: actor.into(),
+                                    message: format!("the manifest from {from} is unusable: {e}"),
+                                });
+                            }
+                            warn!(%actor, %from, error = %e, "unusable manifest; asking another store");
+                            break;
+                        }
+                    },
                     Message::Shutdown(_) => return Ok(Start::Stop),
                     other => debug!(%actor, kind = other.kind().name(), "ignored while starting"),
                 },
