@@ -221,12 +221,14 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
 
     let me = mb.handle();
     let fetches = sender(me.clone(), "voxel fetch");
-    // Control messages to the scheduler (reports, requests for work) and
-    // the pixels to the display go out in separate queues: a display that
-    // is slow to take tiles must not hold back the requests that keep the
-    // render threads busy.
-    let results = sender(me.clone(), "tile report");
-    let pixels = sender(me.clone(), "tile pixels");
+    // Requests for work and the finished tiles go out in separate queues:
+    // a display that is slow to take tiles must not hold back the requests
+    // that keep the render threads busy. A tile's report to the scheduler
+    // follows its pixels in their queue: the scheduler counts the tile done
+    // only once the pixels have left, so a client that dies with pixels
+    // still queued has the tile reassigned instead of lost.
+    let results = sender(me.clone(), "request for work");
+    let pixels = sender(me.clone(), "finished tile");
     let cache = Arc::new(VoxelCache::new(manifest.voxels.len(), opts.cache_bytes));
     let (req_tx, mut req_rx) = mpsc::unbounded_channel();
     let (decoded_tx, mut decoded_rx) = mpsc::unbounded_channel();
@@ -433,7 +435,7 @@ fn finish_tile(
                 tile: job.tile,
                 stats,
             };
-            let _ = out.send((opts.scheduler.clone(), Message::TileReport(report)));
+            let _ = pixels_out.send((opts.scheduler.clone(), Message::TileReport(report)));
         }
         Err(e) => warn!(frame = job.frame, tile = ?job.tile, error = %e, "tile failed"),
     }
