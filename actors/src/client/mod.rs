@@ -221,13 +221,15 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
 
     let me = mb.handle();
     let fetches = sender(me.clone(), "voxel fetch");
-    // Requests for work and the finished tiles go out in separate queues:
-    // a display that is slow to take tiles must not hold back the requests
-    // that keep the render threads busy. A tile's report to the scheduler
-    // follows its pixels in their queue: the scheduler counts the tile done
-    // only once the pixels have left, so a client that dies with pixels
-    // still queued has the tile reassigned instead of lost.
-    let results = sender(me.clone(), "request for work");
+    // A finished tile's pixels, its report and the request for the next
+    // tile go out in this order in one queue: the scheduler counts a tile
+    // done only once its pixels have left (a client that dies with pixels
+    // still queued has the tile reassigned instead of lost), and it never
+    // sees more tiles asked for than the client holds. A display slow to
+    // take tiles therefore slows the requests too, which also bounds the
+    // queue. Other control messages (the first request, pongs) go in
+    // their own.
+    let results = sender(me.clone(), "control message");
     let pixels = sender(me.clone(), "finished tile");
     let cache = Arc::new(VoxelCache::new(manifest.voxels.len(), opts.cache_bytes));
     let (req_tx, mut req_rx) = mpsc::unbounded_channel();
@@ -339,7 +341,7 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
                 busy[r.thread] = busy[r.thread].saturating_sub(1);
                 outstanding = outstanding.saturating_sub(1);
                 let prefetched = loader.take_unattributed();
-                finish_tile(r, prefetched, &opts, &results, &pixels, &mut summary);
+                finish_tile(r, prefetched, &opts, &pixels, &mut summary);
             }
             _ = tick.tick() => loader.tick(),
         }
@@ -387,15 +389,14 @@ fn job(a: AssignTile, diagonal: f32, isa: dray_trace::render::Isa) -> TileJob {
     }
 }
 
-/// Sends a finished tile's pixels and report; `prefetched` bytes (fetched
-/// by hints, asked for by no tile) are charged to it so that frames count
-/// every byte fetched.
+/// Sends a finished tile's pixels, its report and the request for the next
+/// tile, in this order; `prefetched` bytes (fetched by hints, asked for by
+/// no tile) are charged to it so that frames count every byte fetched.
 fn finish_tile(
     r: TileResult,
     prefetched: u64,
     opts: &ClientOptions,
     out: &mpsc::UnboundedSender<(Address, Message)>,
-    pixels_out: &mpsc::UnboundedSender<(Address, Message)>,
     summary: &mut ClientSummary,
 ) {
     let TileResult {
@@ -429,13 +430,13 @@ fn finish_tile(
                 prim_ids: job.want_prim_ids.then_some(PackedU32(img.primid)),
                 stats,
             };
-            let _ = pixels_out.send((opts.display.clone(), Message::TileDone(done)));
+            let _ = out.send((opts.display.clone(), Message::TileDone(done)));
             let report = TileReport {
                 frame: job.frame,
                 tile: job.tile,
                 stats,
             };
-            let _ = pixels_out.send((opts.scheduler.clone(), Message::TileReport(report)));
+            let _ = out.send((opts.scheduler.clone(), Message::TileReport(report)));
         }
         Err(e) => warn!(frame = job.frame, tile = ?job.tile, error = %e, "tile failed"),
     }
