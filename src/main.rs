@@ -14,7 +14,7 @@ use dray_scene::preprocess::{self, preprocess, PreprocessOptions};
 use dray_scene::progress::Progress;
 use dray_trace::camera::Camera;
 use dray_trace::render::{render_repeated, Isa, RenderSettings};
-use dray_trace::scene::{ResidentSource, TopLevel};
+use dray_trace::scene::{RecordingSource, ResidentSource, TopLevel, VoxelSource};
 use glam::Vec3;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -239,6 +239,11 @@ struct RenderArgs {
     /// report frames per second: the one-process baseline of the cluster.
     #[arg(long, conflicts_with_all = ["eye", "look", "up", "fov", "repeat", "out", "depth_out", "primid_out"])]
     path: Option<PathBuf>,
+    /// With `--path`: record which voxels each frame enters and report each
+    /// frame's working set (voxel bytes in the kernel's layout, as a
+    /// client's cache counts them).
+    #[arg(long, requires = "path")]
+    working_set: bool,
 }
 
 /// `dray render --path`: every camera of a path, once each, everything
@@ -255,13 +260,31 @@ fn render_path(
     let cameras = CameraPath::load(path)
         .with_context(|| format!("camera path {}", path.display()))?
         .cameras();
+    // Recording costs a flag test per voxel entered: only when asked.
+    let mut recorder = a
+        .working_set
+        .then(|| RecordingSource::new(source, source.voxel_count()));
+    let mut working_sets = Vec::new();
     let start = std::time::Instant::now();
     let mut rays = 0u64;
     let mut frame_seconds = Vec::with_capacity(cameras.len());
     for c in &cameras {
         let camera = dray_actors::settings::kernel_camera(c, a.width, a.height);
-        let frame = dray_trace::render::render(top, source, &camera, settings)
-            .map_err(|id| anyhow::anyhow!("voxel {id} was not loaded"))?;
+        let frame = match &mut recorder {
+            Some(r) => {
+                let f = dray_trace::render::render(top, r, &camera, settings);
+                let bytes: usize = r
+                    .take()
+                    .iter()
+                    .filter_map(|&id| source.voxel(id))
+                    .map(|v| v.bytes)
+                    .sum();
+                working_sets.push(bytes);
+                f
+            }
+            None => dray_trace::render::render(top, source, &camera, settings),
+        }
+        .map_err(|id| anyhow::anyhow!("voxel {id} was not loaded"))?;
         let s = &frame.stats;
         rays += s.primary_rays + s.shadow_rays + s.reflection_rays;
         frame_seconds.push(s.seconds);
@@ -276,6 +299,15 @@ fn render_path(
         settings.threads,
         rays as f64 / seconds / 1e6
     );
+    if let Some(max) = working_sets.iter().max() {
+        let mean = working_sets.iter().sum::<usize>() as f64 / working_sets.len() as f64;
+        println!(
+            "working set per frame: mean {:.1} MB, largest {:.1} MB (of {:.1} MB)",
+            mean / 1e6,
+            *max as f64 / 1e6,
+            source.bytes() as f64 / 1e6
+        );
+    }
     if a.json {
         let json = serde_json::json!({
             "frames": cameras.len(),
@@ -288,6 +320,7 @@ fn render_path(
             "width": a.width,
             "height": a.height,
             "load_seconds": load_seconds,
+            "working_set_bytes": working_sets,
         });
         println!("{json}");
     }

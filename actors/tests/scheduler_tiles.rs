@@ -487,8 +487,12 @@ async fn scheduler_hands_out_the_costliest_tile_first() {
             .collect()
     };
     let grid = TileGrid::new(64, 64, 16);
-    // No history: row-major.
-    let f0: Vec<usize> = order(0).iter().map(|t| grid.index_of(t).unwrap()).collect();
+    // No history: along the curve, each tile next to the one before.
+    let ranks = grid.curve_ranks();
+    let f0: Vec<u32> = order(0)
+        .iter()
+        .map(|t| ranks[grid.index_of(t).unwrap()])
+        .collect();
     assert_eq!(f0, (0..16).collect::<Vec<_>>());
     // Then by the last frame's cost, costliest first.
     let f1 = order(1);
@@ -699,4 +703,60 @@ async fn scheduler_affinity_holds_with_double_buffering() {
         assert!(o >= 0.9, "frames {k} and {}: {o}", k + 1);
     }
     c.stop().await;
+}
+
+/// Share of the pairs of side-by-side tiles of `frame` that went to the
+/// same client: 1 when each client's tiles are one compact region, about
+/// 1/clients when they are scattered.
+fn neighbours_together(c: &Cluster, grid: &TileGrid, frame: u64) -> f64 {
+    let owner = c.assignments_in(frame, grid);
+    let (cols, rows) = (grid.cols as usize, grid.rows as usize);
+    let (mut same, mut pairs) = (0, 0);
+    for y in 0..rows {
+        for x in 0..cols {
+            let i = y * cols + x;
+            for j in [
+                (x + 1 < cols).then_some(i + 1),
+                (y + 1 < rows).then_some(i + cols),
+            ]
+            .into_iter()
+            .flatten()
+            {
+                pairs += 1;
+                same += usize::from(owner[&i][0] == owner[&j][0]);
+            }
+        }
+    }
+    same as f64 / pairs as f64
+}
+
+#[tokio::test(start_paused = true)]
+async fn scheduler_affinity_gives_each_client_a_compact_region() {
+    // Clients of different speeds: the fast ones take tiles beyond their
+    // own every frame, which must come from their regions' borders.
+    let speeds = [3, 5, 7, 9].map(|ms| Behaviour {
+        render: Duration::from_millis(ms),
+        ..Behaviour::normal()
+    });
+    let (w, h) = (640, 480);
+    let grid = TileGrid::new(w, h, 32);
+    for affinity in [true, false] {
+        let mut c = cluster(options(affinity, Duration::from_secs(60)), w, h, &speeds);
+        c.run_sequential(6).await;
+        for k in 0..6 {
+            let together = neighbours_together(&c, &grid, k);
+            if affinity {
+                assert!(together >= 0.8, "affinity, frame {k}: {together}");
+            } else {
+                assert!(together <= 0.45, "random, frame {k}: {together}");
+            }
+        }
+        if affinity {
+            for k in 1..5 {
+                let o = overlap(&c, &grid, k, k + 1);
+                assert!(o >= 0.75, "frames {k} and {}: {o}", k + 1);
+            }
+        }
+        c.stop().await;
+    }
 }

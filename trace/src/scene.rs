@@ -326,10 +326,58 @@ impl ResidentSource {
     pub fn bytes(&self) -> usize {
         self.voxels.iter().map(|v| v.bytes).sum()
     }
+
+    pub fn voxel_count(&self) -> usize {
+        self.voxels.len()
+    }
 }
 
 impl VoxelSource for ResidentSource {
     fn voxel(&self, id: u32) -> Option<Arc<PreparedVoxel>> {
         self.voxels.get(id as usize).cloned()
+    }
+}
+
+/// A source that records which voxels the kernel enters: the working set
+/// of what it renders (the paper's "visible geometry"), in the same bytes
+/// as a client's cache counts. `dray render --path --working-set` reports
+/// it per frame; the affinity benchmark sizes the clients' caches by it.
+pub struct RecordingSource<'a, S> {
+    inner: &'a S,
+    /// Per voxel id: whether it was entered since the last [`Self::take`].
+    entered: Vec<std::sync::atomic::AtomicBool>,
+}
+
+impl<'a, S: VoxelSource> RecordingSource<'a, S> {
+    pub fn new(inner: &'a S, voxels: usize) -> Self {
+        RecordingSource {
+            inner,
+            entered: (0..voxels)
+                .map(|_| std::sync::atomic::AtomicBool::new(false))
+                .collect(),
+        }
+    }
+
+    /// The voxels entered since the last call, and clears the record.
+    pub fn take(&mut self) -> Vec<u32> {
+        self.entered
+            .iter_mut()
+            .enumerate()
+            .filter_map(|(id, e)| std::mem::take(e.get_mut()).then_some(id as u32))
+            .collect()
+    }
+}
+
+impl<S: VoxelSource> VoxelSource for RecordingSource<'_, S> {
+    fn voxel(&self, id: u32) -> Option<Arc<PreparedVoxel>> {
+        let v = self.inner.voxel(id)?;
+        if let Some(e) = self.entered.get(id as usize) {
+            // Read first: after its first entry a voxel's flag is only
+            // read, so the render threads do not fight over its line.
+            if !e.load(std::sync::atomic::Ordering::Relaxed) {
+                e.store(true, std::sync::atomic::Ordering::Relaxed);
+            }
+        }
+        Some(v)
     }
 }

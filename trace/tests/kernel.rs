@@ -220,3 +220,32 @@ fn any_hit_packets_equal_brute_force() {
         "{occluded} of 2400 occluded"
     );
 }
+
+/// The recorded working set holds every voxel that holds a pixel's hit,
+/// is the same when the frame is rendered again, and is cleared by `take`.
+#[test]
+fn recorded_working_set_holds_every_hit_voxel() {
+    use dray_trace::scene::RecordingSource;
+    let m = plant(20_000);
+    let voxels = m.db.manifest.voxels.len();
+    for (k, cam) in cameras(&m, 96, 72).iter().enumerate() {
+        let mut rec = RecordingSource::new(&m.source, voxels);
+        let frame = render(&m.top, &rec, cam, &settings(Isa::detect(), &m)).unwrap();
+        let entered = rec.take();
+        assert!(rec.take().is_empty(), "camera {k}: take clears");
+        let again = render(&m.top, &rec, cam, &settings(Isa::detect(), &m)).unwrap();
+        assert_eq!(again.primid, frame.primid);
+        assert_eq!(rec.take(), entered, "camera {k}: same frame, same set");
+        let holding: HashSet<u32> = entered
+            .iter()
+            .flat_map(|&id| m.source.voxel(id).unwrap().ids.clone())
+            .collect();
+        for (p, &id) in frame.primid.iter().enumerate() {
+            assert!(
+                id == u32::MAX || holding.contains(&id),
+                "camera {k}: pixel {p} hit triangle {id} of no entered voxel"
+            );
+        }
+        assert!(!entered.is_empty(), "camera {k}: nothing entered");
+    }
+}

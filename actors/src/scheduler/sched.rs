@@ -11,7 +11,7 @@ use dray_protocol::{
 };
 use dray_runtime::{Delivery, Mailbox};
 use dray_scene::rng::Rng;
-use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::collections::{BTreeMap, BTreeSet, HashMap, VecDeque};
 use std::time::Duration;
 use tokio::time::Instant;
 use tracing::{debug, info, warn};
@@ -94,6 +94,13 @@ struct Frame {
     /// the fresh tiles, `pop()` giving the next one.
     groups: Vec<Vec<usize>>,
     group_of: HashMap<Name, usize>,
+    /// Each tile's position along the grid's space-filling curve.
+    ranks: Vec<u32>,
+    /// Affinity: per client, the curve positions of the tiles it owned in
+    /// the previous frame and of those it was given in this one: the
+    /// screen region its cache holds, which tiles it takes beyond its own
+    /// should border.
+    region: HashMap<Name, BTreeSet<u32>>,
     /// Without affinity: the fresh tiles.
     pool: Vec<usize>,
     /// Tiles to give to another client before any fresh one.
@@ -130,6 +137,8 @@ impl Frame {
                 .collect(),
             groups: Vec::new(),
             group_of: HashMap::new(),
+            ranks: grid.curve_ranks(),
+            region: HashMap::new(),
             pool: Vec::new(),
             retry: VecDeque::new(),
             fresh_left: n,
@@ -167,6 +176,20 @@ impl Frame {
         let prev = prev.filter(|p| p.grid == self.grid);
         self.groups = vec![Vec::new()];
         self.group_of.clear();
+        self.region.clear();
+        for i in 0..self.tiles.len() {
+            // Whoever has it in this frame, else whoever had it before.
+            let owner = self.owners[i]
+                .as_ref()
+                .or(self.tiles[i].outstanding.first().map(|(n, _)| n))
+                .or(prev.and_then(|p| p.owners[i].as_ref()));
+            if let Some(o) = owner {
+                self.region
+                    .entry(o.clone())
+                    .or_default()
+                    .insert(self.ranks[i]);
+            }
+        }
         for i in fresh {
             let g = match prev.and_then(|p| p.owners[i].as_ref()) {
                 None => 0,
@@ -230,15 +253,58 @@ impl Frame {
                 return Some(i);
             }
         }
-        // Steal: from the group with the most tiles left (the lowest group
-        // on ties, so "nobody's" tiles go first), its next (costliest) tile.
-        let (g, _) = self
-            .groups
-            .iter()
-            .enumerate()
-            .filter(|(_, q)| !q.is_empty())
-            .max_by_key(|(g, q)| (q.len(), std::cmp::Reverse(*g)))?;
-        self.groups[g].pop()
+        // Beyond its own tiles: first those nobody owned, else from the
+        // client with the most tiles left; either way the one nearest to
+        // the client's region, so that regions stay compact and only
+        // their borders move between clients.
+        let g = if !self.groups[0].is_empty() {
+            0
+        } else {
+            let (g, _) = self
+                .groups
+                .iter()
+                .enumerate()
+                .filter(|(_, q)| !q.is_empty())
+                .max_by_key(|(g, q)| (q.len(), std::cmp::Reverse(*g)))?;
+            g
+        };
+        let k = self.nearest_to_region(c, g);
+        Some(self.groups[g].remove(k))
+    }
+
+    /// Which tile of group `g` (non-empty) client `c` should take: the
+    /// nearest along the curve to its region; for a client without one,
+    /// the farthest from every other client's region (so that clients
+    /// starting together grow their regions from far apart).
+    fn nearest_to_region(&self, c: &Name, g: usize) -> usize {
+        fn distance(set: &BTreeSet<u32>, r: u32) -> u32 {
+            let below = set.range(..=r).next_back().map(|&b| r - b);
+            let above = set.range(r..).next().map(|&a| a - r);
+            below.into_iter().chain(above).min().unwrap_or(u32::MAX)
+        }
+        let queue = &self.groups[g];
+        let rank = |k: usize| self.ranks[queue[k]];
+        let by = |score: &dyn Fn(u32) -> u32, nearest: bool| {
+            // Ties go to the lowest curve position.
+            (0..queue.len())
+                .min_by_key(|&k| {
+                    let d = score(rank(k));
+                    (if nearest { d } else { u32::MAX - d }, rank(k))
+                })
+                .unwrap_or(0)
+        };
+        match self.region.get(c).filter(|r| !r.is_empty()) {
+            Some(own) => by(&|r| distance(own, r), true),
+            None => {
+                let others: BTreeSet<u32> = self
+                    .region
+                    .iter()
+                    .filter(|(n, _)| *n != c)
+                    .flat_map(|(_, r)| r.iter().copied())
+                    .collect();
+                by(&|r| distance(&others, r), false)
+            }
+        }
     }
 
     fn median_time(&mut self) -> u64 {
@@ -388,6 +454,10 @@ impl Scheduler {
                 };
                 state.credits -= 1;
                 progress = true;
+                if self.opts.affinity {
+                    let rank = frame.ranks[i];
+                    frame.region.entry(node.clone()).or_default().insert(rank);
+                }
                 let t = &mut frame.tiles[i];
                 if t.state == State::Fresh {
                     frame.fresh_left -= 1;
@@ -485,9 +555,23 @@ impl Scheduler {
             out.push(Out::Assigned(number));
         }
         let (stats, owners) = frame.summary_messages();
+        // Affinity at work: how many tiles the client of the frame before
+        // rendered again.
+        let kept = self
+            .prev
+            .as_ref()
+            .filter(|p| p.grid == frame.grid)
+            .map_or(0, |p| {
+                p.owners
+                    .iter()
+                    .zip(&frame.owners)
+                    .filter(|(a, b)| a.is_some() && a == b)
+                    .count()
+            });
         info!(
             frame = number,
             tiles = stats.tiles,
+            kept,
             reassigned = stats.reassigned,
             rays = stats.rays,
             time_ms = stats.time_us as f64 / 1000.0,

@@ -64,11 +64,81 @@ impl TileGrid {
         (self.rect(i) == *r).then_some(i)
     }
 
+    /// Each tile's position along a Hilbert curve generalized to
+    /// rectangles: consecutive positions are neighbouring tiles (a
+    /// diagonal step at most, where a side is odd), so a run of positions
+    /// is a compact region of the image (affinity hands each client such a
+    /// region; see the scheduler).
+    pub fn curve_ranks(&self) -> Vec<u32> {
+        let mut ranks = vec![0; self.count()];
+        let mut next = 0u32;
+        let (w, h) = (self.cols as i64, self.rows as i64);
+        let mut visit = |x: i64, y: i64| {
+            ranks[(y * w + x) as usize] = next;
+            next += 1;
+        };
+        if w >= h {
+            gilbert(&mut visit, (0, 0), (w, 0), (0, h));
+        } else {
+            gilbert(&mut visit, (0, 0), (0, h), (w, 0));
+        }
+        ranks
+    }
+
     /// The index of the tile holding pixel (x, y), if inside the image.
     pub fn tile_at(&self, x: u32, y: u32) -> Option<usize> {
         (x < self.width && y < self.height).then(|| {
             (y / self.tile_size) as usize * self.cols as usize + (x / self.tile_size) as usize
         })
+    }
+}
+
+/// Visits every cell of the rectangle at `origin` spanned by the major
+/// axis `a` and the minor axis `b` (each a vector along x or y) along a
+/// generalized Hilbert curve (J. Červený's "gilbert"): split the long side
+/// in two when the rectangle is long, else into three parts (the usual
+/// Hilbert U), keeping each part's sides even where the curve must turn so
+/// that it ends next to where the next part starts.
+fn gilbert(
+    visit: &mut impl FnMut(i64, i64),
+    (x, y): (i64, i64),
+    (ax, ay): (i64, i64),
+    (bx, by): (i64, i64),
+) {
+    let w = (ax + ay).abs();
+    let h = (bx + by).abs();
+    let (dax, day) = (ax.signum(), ay.signum());
+    let (dbx, dby) = (bx.signum(), by.signum());
+    if h == 1 || w == 1 {
+        let (n, dx, dy) = if h == 1 { (w, dax, day) } else { (h, dbx, dby) };
+        for i in 0..n {
+            visit(x + i * dx, y + i * dy);
+        }
+        return;
+    }
+    // Halves rounded towards minus infinity, as the curve's corners need.
+    let (mut ax2, mut ay2) = (ax.div_euclid(2), ay.div_euclid(2));
+    let (mut bx2, mut by2) = (bx.div_euclid(2), by.div_euclid(2));
+    let w2 = (ax2 + ay2).abs();
+    let h2 = (bx2 + by2).abs();
+    if 2 * w > 3 * h {
+        if w2 % 2 == 1 && w > 2 {
+            (ax2, ay2) = (ax2 + dax, ay2 + day);
+        }
+        gilbert(visit, (x, y), (ax2, ay2), (bx, by));
+        gilbert(visit, (x + ax2, y + ay2), (ax - ax2, ay - ay2), (bx, by));
+    } else {
+        if h2 % 2 == 1 && h > 2 {
+            (bx2, by2) = (bx2 + dbx, by2 + dby);
+        }
+        gilbert(visit, (x, y), (bx2, by2), (ax2, ay2));
+        gilbert(visit, (x + bx2, y + by2), (ax, ay), (bx - bx2, by - by2));
+        gilbert(
+            visit,
+            (x + (ax - dax) + (bx2 - dbx), y + (ay - day) + (by2 - dby)),
+            (-bx2, -by2),
+            (-(ax - ax2), -(ay - ay2)),
+        );
     }
 }
 
@@ -106,5 +176,37 @@ mod tests {
         );
         assert_eq!(g.tile_at(99, 69), Some(11));
         assert_eq!(g.tile_at(100, 0), None);
+    }
+
+    #[test]
+    fn curve_ranks_are_a_permutation_of_screen_neighbours() {
+        for (w, h, t) in [
+            (640, 480, 32),
+            (640, 480, 64),
+            (256, 256, 32),
+            (100, 37, 16),
+            (37, 100, 16),
+            (1, 1, 32),
+            (300, 16, 16),
+        ] {
+            let g = TileGrid::new(w, h, t);
+            let ranks = g.curve_ranks();
+            let mut sorted = ranks.clone();
+            sorted.sort_unstable();
+            assert_eq!(sorted, (0..g.count() as u32).collect::<Vec<_>>());
+            let mut by_rank = vec![0; g.count()];
+            for (i, &r) in ranks.iter().enumerate() {
+                by_rank[r as usize] = i;
+            }
+            // Each step is to a neighbour, diagonally at most.
+            for k in by_rank.windows(2) {
+                let (a, b) = (g.rect(k[0]), g.rect(k[1]));
+                let (dx, dy) = (a.x.abs_diff(b.x) / t, a.y.abs_diff(b.y) / t);
+                assert!(
+                    dx <= 1 && dy <= 1 && dx + dy >= 1,
+                    "{w}x{h}: {a:?} to {b:?}"
+                );
+            }
+        }
     }
 }
