@@ -7,8 +7,9 @@ use dray_actors::scheduler::{
     MAX_QUEUED_FRAMES,
 };
 use dray_protocol::{
-    Camera, CameraUpdate, FrameAssigned, FrameDone, Message, Name, Reflective, RenderSettings,
-    RequestWork, Role, Shutdown, TileOwners, TileRect, TileReport, TileStats,
+    AssignTile, BoundedVec, Camera, CameraUpdate, FrameAssigned, FrameDone, Message, Name,
+    Reflective, RenderSettings, RequestWork, Role, Shutdown, TileOwners, TileRect, TileReport,
+    TileStats,
 };
 use dray_runtime::{Bus, InProcNet, Mailbox};
 use std::collections::HashMap;
@@ -69,6 +70,8 @@ struct Behaviour {
     cost: fn(&TileRect) -> u64,
     /// Never reports anything.
     silent: bool,
+    /// Reports hit positions: where its pixel rays meet the plane z = 0.
+    plane_hits: bool,
 }
 
 impl Behaviour {
@@ -78,6 +81,7 @@ impl Behaviour {
             render: Duration::from_millis(5),
             cost: |_| 1000,
             silent: false,
+            plane_hits: true,
         }
     }
 }
@@ -100,13 +104,13 @@ fn spawn_client(net: &InProcNet, i: usize, b: Behaviour, log: Log) -> (Bus, Join
     let mut mb = bus.mailbox(name(names::CLIENT), 1024).unwrap();
     let task = tokio::spawn(async move {
         let me = mb.handle();
-        let (tx, mut rx) = tokio::sync::mpsc::unbounded_channel::<(u64, TileRect)>();
+        let (tx, mut rx) = tokio::sync::mpsc::unbounded_channel::<(u64, TileRect, Vec<[f32; 3]>)>();
         let worker = {
             let me = me.clone();
             let b = b.clone();
             let log = log.clone();
             tokio::spawn(async move {
-                while let Some((frame, tile)) = rx.recv().await {
+                while let Some((frame, tile, hits)) = rx.recv().await {
                     tokio::time::sleep(b.render).await;
                     if b.silent {
                         continue;
@@ -120,6 +124,7 @@ fn spawn_client(net: &InProcNet, i: usize, b: Behaviour, log: Log) -> (Bus, Join
                         frame,
                         tile,
                         stats: stats_for(&tile, (b.cost)(&tile)),
+                        hits: BoundedVec::new(hits).unwrap(),
                     };
                     if me
                         .send(&names::scheduler(), Message::TileReport(report))
@@ -151,7 +156,12 @@ fn spawn_client(net: &InProcNet, i: usize, b: Behaviour, log: Log) -> (Bus, Join
                         tile: a.tile,
                         client: i,
                     });
-                    let _ = tx.send((a.frame, a.tile));
+                    let hits = if b.plane_hits {
+                        plane_hits(&a)
+                    } else {
+                        Vec::new()
+                    };
+                    let _ = tx.send((a.frame, a.tile, hits));
                 }
                 Message::Shutdown(_) => break,
                 _ => {}
@@ -160,6 +170,24 @@ fn spawn_client(net: &InProcNet, i: usize, b: Behaviour, log: Log) -> (Bus, Join
         worker.abort();
     });
     (bus, task)
+}
+
+/// Where the rays of a 4 × 4 grid of the tile's pixels meet the plane
+/// z = 0 (the scene of the reprojection test).
+fn plane_hits(a: &AssignTile) -> Vec<[f32; 3]> {
+    let b = dray_actors::settings::kernel_camera(&a.camera, a.width, a.height).basis();
+    let t = a.tile;
+    let mut hits = Vec::new();
+    for j in 0..4 {
+        for i in 0..4 {
+            let d = b.direction(t.x + (2 * i + 1) * t.w / 8, t.y + (2 * j + 1) * t.h / 8);
+            let s = -b.eye.z / d.z;
+            if s > 0.0 {
+                hits.push((b.eye + d * s).to_array());
+            }
+        }
+    }
+    hits
 }
 
 struct Cluster {
@@ -234,6 +262,16 @@ fn cluster(opts: SchedulerOptions, width: u32, height: u32, clients: &[Behaviour
 }
 
 impl Cluster {
+    async fn send_camera(&self, seq: u64, camera: Camera) {
+        self.display
+            .send(
+                &names::assigner(),
+                Message::CameraUpdate(CameraUpdate { seq, camera }),
+            )
+            .await
+            .unwrap();
+    }
+
     async fn camera(&self, k: u64) {
         self.display
             .send(
@@ -759,4 +797,47 @@ async fn scheduler_affinity_gives_each_client_a_compact_region() {
         }
         c.stop().await;
     }
+}
+
+#[tokio::test(start_paused = true)]
+async fn scheduler_affinity_follows_content_that_moves_across_the_screen() {
+    // The camera pans along x over the plane z = 0 by 8 tiles' worth of
+    // the image per frame: tile (x, y) of frame k + 1 shows what tile
+    // (x + 8, y) showed in frame k, and should go to the client that
+    // rendered that (by screen position alone about 0.3 do). Some move
+    // anyway: the clients whose content leaves the screen take tiles from
+    // those whose content stays.
+    let four = [(); 4].map(|_| Behaviour {
+        plane_hits: true,
+        ..Behaviour::normal()
+    });
+    let (w, h) = (640, 480);
+    let grid = TileGrid::new(w, h, 32);
+    let per_frame = 8.0 * 32.0 / h as f32 * 2.0 * 5.0 * 25f32.to_radians().tan();
+    let mut c = cluster(options(true, Duration::from_secs(60)), w, h, &four);
+    for k in 0..6u64 {
+        let x = k as f32 * per_frame;
+        let camera = Camera {
+            eye: [x, 0.0, 5.0],
+            look: [x, 0.0, 0.0],
+            up: [0.0, 1.0, 0.0],
+            fov_y_deg: 50.0,
+        };
+        c.send_camera(k, camera).await;
+        assert_eq!(c.frame_done().await.frame, k);
+    }
+    for k in 1..5 {
+        let (a, b) = (c.assignments_in(k, &grid), c.assignments_in(k + 1, &grid));
+        let cols = grid.cols as usize;
+        let (mut same, mut all) = (0, 0);
+        for (i, owner) in &b {
+            if i % cols + 8 < cols {
+                all += 1;
+                same += usize::from(a[&(i + 8)][0] == owner[0]);
+            }
+        }
+        let share = same as f64 / all as f64;
+        assert!(share >= 0.7, "frames {k} and {}: {share}", k + 1);
+    }
+    c.stop().await;
 }

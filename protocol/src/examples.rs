@@ -125,6 +125,7 @@ pub fn one_of_each(voxel_bytes: usize) -> Vec<Message> {
                 bytes_fetched: 4_000,
                 stall_us: 10,
             },
+            hits: BoundedVec::new(vec![[1.0, -2.5, 3.25], [0.0, 1e9, -7.0]]).unwrap(),
         }),
         Message::FrameStart(FrameStart {
             frame: 8,

@@ -35,11 +35,12 @@ pub type VoxelId = u32;
 
 /// Version of the wire protocol; both ends of a connection must agree.
 /// 2: the distributed renderer's messages (manifest, tile reports, frame
-/// start and assignment, tile owners) and the shading render settings.
-pub const PROTOCOL_VERSION: u32 = 2;
+/// start and assignment, tile owners) and the shading render settings;
+/// 3: tile reports carry hit positions (reprojection affinity).
+pub const PROTOCOL_VERSION: u32 = 3;
 
 /// ALPN protocol id spoken over QUIC.
-pub const ALPN: &[u8] = b"dray/2";
+pub const ALPN: &[u8] = b"dray/3";
 
 /// Largest compressed voxel blob a store may send.
 pub const MAX_VOXEL_BYTES: usize = 64 << 20;

@@ -298,7 +298,7 @@ pub struct ManifestData {
 
 /// A client tells the scheduler that a tile is done (its pixels went to
 /// the display in a [`TileDone`]).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct TileReport {
     /// Frame number.
     pub frame: u64,
@@ -306,7 +306,15 @@ pub struct TileReport {
     pub tile: TileRect,
     /// Costs.
     pub stats: TileStats,
+    /// World positions of the tile's primary hits at a few pixels spread
+    /// over it (misses left out): where its content lies, so that the
+    /// scheduler can give the tiles that show it in the next frame to the
+    /// client whose cache holds it (reprojection affinity).
+    pub hits: BoundedVec<[f32; 3], MAX_TILE_HITS>,
 }
+
+/// Most hit positions one [`TileReport`] carries (a 4 × 4 grid).
+pub const MAX_TILE_HITS: usize = 16;
 
 /// The frame assigner releases a frame to the scheduler.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -472,9 +480,9 @@ impl MessageKind {
             | MessageKind::Ping
             | MessageKind::Pong
             | MessageKind::FetchManifest
-            | MessageKind::TileReport
             | MessageKind::FrameStart
             | MessageKind::FrameAssigned => ENVELOPE_OVERHEAD,
+            MessageKind::TileReport => ENVELOPE_OVERHEAD + MAX_TILE_HITS * 12 + 1,
             MessageKind::ManifestData => BULK_FRAME_MAX,
             MessageKind::TileOwners => {
                 ENVELOPE_OVERHEAD

@@ -315,6 +315,7 @@ fn maximal_messages_fit_their_limits() {
             frame: u64::MAX,
             tile,
             stats,
+            hits: BoundedVec::new(vec![[f32::MAX; 3]; MAX_TILE_HITS]).unwrap(),
         }),
         Message::FrameStart(FrameStart {
             frame: u64::MAX,

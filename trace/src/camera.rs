@@ -112,11 +112,54 @@ impl CameraBasis {
             dir: self.direction(x, y),
         }
     }
+
+    /// Where world point `p` falls in the image, in continuous pixel
+    /// coordinates (pixel (x, y) covers [x, x+1) × [y, y+1)), if it is in
+    /// front of the eye; the inverse of [`Self::direction`]. It may fall
+    /// outside the image.
+    pub fn project(&self, p: Vec3) -> Option<(f32, f32)> {
+        let d = p - self.eye;
+        let z = d.dot(self.forward);
+        // Also refuses NaN (a degenerate camera).
+        if z.is_nan() || z <= 0.0 {
+            return None;
+        }
+        // d = z (forward + sx right + sy up), the three orthogonal.
+        let sx = d.dot(self.right) / (z * self.right.length_squared());
+        let sy = d.dot(self.up) / (z * self.up.length_squared());
+        let xy = (
+            (sx + 1.0) * 0.5 * self.width,
+            (1.0 - sy) * 0.5 * self.height,
+        );
+        (xy.0.is_finite() && xy.1.is_finite()).then_some(xy)
+    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_point_on_a_pixel_ray_projects_into_that_pixel() {
+        let cam = Camera {
+            eye: Vec3::new(1.0, 2.0, 3.0),
+            look: Vec3::new(-4.0, 0.5, -7.0),
+            up: Vec3::Y,
+            fov_degrees: 50.0,
+            width: 640,
+            height: 480,
+        };
+        let b = cam.basis();
+        for (x, y) in [(0, 0), (639, 479), (320, 240), (17, 400), (600, 3)] {
+            for t in [0.1, 3.0, 250.0] {
+                let (px, py) = b.project(b.eye + b.direction(x, y) * t).unwrap();
+                assert_eq!((px.floor() as u32, py.floor() as u32), (x, y), "t {t}");
+                assert!((px - x as f32 - 0.5).abs() < 1e-3 && (py - y as f32 - 0.5).abs() < 1e-3);
+            }
+        }
+        assert_eq!(b.project(b.eye - b.forward), None, "behind the eye");
+        assert_eq!(b.project(b.eye), None);
+    }
 
     #[test]
     fn centre_pixel_looks_forward_and_corners_span_the_fov() {

@@ -81,6 +81,36 @@ pub struct TileImage {
     pub stats: TileStats,
 }
 
+impl TileImage {
+    /// World positions of the primary hits at an `n` × `n` grid of pixels
+    /// spread evenly over the tile (misses left out): where the tile's
+    /// content lies, for the scheduler's reprojection affinity.
+    pub fn sample_hits(&self, camera: &Camera, n: u32) -> Vec<glam::Vec3> {
+        let b = camera.basis();
+        let Rect {
+            x0,
+            y0,
+            width,
+            height,
+        } = self.rect;
+        let mut hits = Vec::new();
+        for j in 0..n.min(height) {
+            for i in 0..n.min(width) {
+                // The centres of an n × n split of the tile.
+                let (x, y) = (
+                    (2 * i + 1) * width / (2 * n),
+                    (2 * j + 1) * height / (2 * n),
+                );
+                let t = self.depth[(y * width + x) as usize];
+                if t.is_finite() {
+                    hits.push(b.eye + b.direction(x0 + x, y0 + y) * t);
+                }
+            }
+        }
+        hits
+    }
+}
+
 /// Renders `rect` of `camera`'s image with `settings` (its `threads` is
 /// ignored: the tile runs on the caller's task), loading voxels through
 /// `loader`. Every pixel is bit-identical to what

@@ -23,8 +23,8 @@ use crate::settings::{kernel_camera, kernel_settings};
 use crate::ActorError;
 use cache::VoxelCache;
 use dray_protocol::{
-    Address, AssignTile, Blob, FetchManifest, Message, PackedF32, PackedU32, RequestWork, TileDone,
-    TileReport, TileStats,
+    Address, AssignTile, Blob, BoundedVec, FetchManifest, Message, PackedF32, PackedU32,
+    RequestWork, TileDone, TileReport, TileStats,
 };
 use dray_runtime::{ActorRef, Delivery, Mailbox};
 use dray_scene::db::manifest::Manifest;
@@ -421,6 +421,13 @@ fn finish_tile(
                 bytes_fetched: bytes_fetched + prefetched,
                 stall_us: stall.as_micros() as u64,
             };
+            // 4 × 4 = MAX_TILE_HITS samples: enough for the scheduler to
+            // tell whose content the next frame's tiles show.
+            let hits: Vec<[f32; 3]> = img
+                .sample_hits(&job.camera, 4)
+                .iter()
+                .map(|p| p.to_array())
+                .collect();
             let pixels = img.rgba.as_flattened().to_vec();
             let done = TileDone {
                 frame: job.frame,
@@ -435,6 +442,7 @@ fn finish_tile(
                 frame: job.frame,
                 tile: job.tile,
                 stats,
+                hits: BoundedVec::new(hits).unwrap_or_default(),
             };
             let _ = out.send((opts.scheduler.clone(), Message::TileReport(report)));
         }

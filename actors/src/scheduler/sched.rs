@@ -3,6 +3,7 @@
 //! first, and reassignment of the tiles of lost or silent clients.
 
 use super::tiles::TileGrid;
+use crate::settings::kernel_camera;
 use crate::ActorError;
 use dray_protocol::{
     Address, AssignTile, BoundedVec, Camera, ClientFrameStats, FrameAssigned, FrameDone,
@@ -11,6 +12,7 @@ use dray_protocol::{
 };
 use dray_runtime::{Delivery, Mailbox};
 use dray_scene::rng::Rng;
+use glam::Vec3;
 use std::collections::{BTreeMap, BTreeSet, HashMap, VecDeque};
 use std::time::Duration;
 use tokio::time::Instant;
@@ -82,6 +84,8 @@ struct Previous {
     grid: TileGrid,
     costs: Vec<u64>,
     owners: Vec<Option<Name>>,
+    /// Per tile, the world positions of some of its hits.
+    hits: Vec<Vec<Vec3>>,
 }
 
 struct Frame {
@@ -115,6 +119,14 @@ struct Frame {
     clients: BTreeMap<Name, ClientFrameStats>,
     costs: Vec<u64>,
     owners: Vec<Option<Name>>,
+    /// Per tile, the world positions of some of its hits, as reported.
+    hits: Vec<Vec<Vec3>>,
+    /// Affinity: per tile, the client whose cache should hold what it
+    /// shows (see [`Frame::reprojection`]).
+    affine: Vec<Option<Name>>,
+    /// Affinity: per tile, how many of the previous frame's hit samples
+    /// of each client land in it.
+    votes: Vec<Vec<(Name, u32)>>,
     /// Time of each tile done so far, for the deadline's median.
     times: Vec<u64>,
     median: (usize, u64),
@@ -153,13 +165,66 @@ impl Frame {
             clients: BTreeMap::new(),
             costs: vec![0; n],
             owners: vec![None; n],
+            hits: vec![Vec::new(); n],
+            affine: vec![None; n],
+            votes: vec![Vec::new(); n],
             times: Vec::new(),
             median: (0, 0),
         }
     }
 
-    /// Sorts the fresh tiles into queues: per previous owner when `affinity`
-    /// (costliest first, or in index order), else one pool.
+    /// The paper's reprojection affinity: each tile goes preferably to the
+    /// client that rendered most of the previous frame's content that
+    /// lands in it (the previous frame's hit samples projected into this
+    /// frame's camera), as that client's cache holds it; where nothing
+    /// lands (sky, or content just come into view) to the tile's previous
+    /// owner. Content that moves across the screen keeps its client.
+    ///
+    /// Returns each tile's client and the samples of each client that
+    /// land in it.
+    #[allow(clippy::type_complexity)]
+    fn reprojection(&self, prev: &Previous) -> (Vec<Option<Name>>, Vec<Vec<(Name, u32)>>) {
+        let camera = kernel_camera(&self.camera, self.grid.width, self.grid.height).basis();
+        let mut votes: Vec<BTreeMap<&Name, u32>> = vec![BTreeMap::new(); self.tiles.len()];
+        for (hits, owner) in prev.hits.iter().zip(&prev.owners) {
+            let Some(owner) = owner else { continue };
+            for &h in hits {
+                let Some((x, y)) = camera.project(h) else {
+                    continue;
+                };
+                // Negative or huge coordinates saturate, then miss the grid.
+                if let Some(t) = self
+                    .grid
+                    .tile_at(x as u32, y as u32)
+                    .filter(|_| x >= 0.0 && y >= 0.0)
+                {
+                    *votes[t].entry(owner).or_default() += 1;
+                }
+            }
+        }
+        let same_grid = prev.grid == self.grid;
+        let owners = votes
+            .iter()
+            .enumerate()
+            .map(|(i, v)| {
+                // Most votes; among equals the first name, for repeatability.
+                let best = v.iter().max_by_key(|&(n, c)| (*c, std::cmp::Reverse(*n)));
+                match best {
+                    Some((n, _)) => Some((*n).clone()),
+                    None if same_grid => prev.owners[i].clone(),
+                    None => None,
+                }
+            })
+            .collect();
+        let votes = votes
+            .into_iter()
+            .map(|v| v.into_iter().map(|(n, c)| (n.clone(), c)).collect())
+            .collect();
+        (owners, votes)
+    }
+
+    /// Sorts the fresh tiles into queues: per affinity client when
+    /// `affinity` (costliest first, or in index order), else one pool.
     ///
     /// Without a previous frame of the same grid every tile is in the
     /// "nobody's" group, in row-major order: nothing is known about the
@@ -173,16 +238,23 @@ impl Frame {
             self.pool = fresh;
             return;
         }
-        let prev = prev.filter(|p| p.grid == self.grid);
+        (self.affine, self.votes) = match prev {
+            Some(p) => self.reprojection(p),
+            None => (
+                vec![None; self.tiles.len()],
+                vec![Vec::new(); self.tiles.len()],
+            ),
+        };
+        let costs = prev.filter(|p| p.grid == self.grid).map(|p| &p.costs);
         self.groups = vec![Vec::new()];
         self.group_of.clear();
         self.region.clear();
         for i in 0..self.tiles.len() {
-            // Whoever has it in this frame, else whoever had it before.
+            // Whoever has it in this frame, else its affinity client.
             let owner = self.owners[i]
                 .as_ref()
                 .or(self.tiles[i].outstanding.first().map(|(n, _)| n))
-                .or(prev.and_then(|p| p.owners[i].as_ref()));
+                .or(self.affine[i].as_ref());
             if let Some(o) = owner {
                 self.region
                     .entry(o.clone())
@@ -191,7 +263,7 @@ impl Frame {
             }
         }
         for i in fresh {
-            let g = match prev.and_then(|p| p.owners[i].as_ref()) {
+            let g = match &self.affine[i] {
                 None => 0,
                 Some(owner) => {
                     let next = self.groups.len();
@@ -205,11 +277,11 @@ impl Frame {
             self.groups[g].push(i);
         }
         for q in &mut self.groups {
-            match prev {
+            match costs {
                 // Ascending cost, ties by descending index: pop() gives the
                 // costliest, the lowest index first among equals.
-                Some(p) if opts.costliest_first => {
-                    q.sort_unstable_by_key(|&i| (p.costs[i], std::cmp::Reverse(i)))
+                Some(costs) if opts.costliest_first => {
+                    q.sort_unstable_by_key(|&i| (costs[i], std::cmp::Reverse(i)))
                 }
                 _ => q.sort_unstable_by(|a, b| b.cmp(a)),
             }
@@ -253,58 +325,57 @@ impl Frame {
                 return Some(i);
             }
         }
-        // Beyond its own tiles: first those nobody owned, else from the
-        // client with the most tiles left; either way the one nearest to
-        // the client's region, so that regions stay compact and only
-        // their borders move between clients.
-        let g = if !self.groups[0].is_empty() {
-            0
-        } else {
-            let (g, _) = self
-                .groups
-                .iter()
-                .enumerate()
-                .filter(|(_, q)| !q.is_empty())
-                .max_by_key(|(g, q)| (q.len(), std::cmp::Reverse(*g)))?;
-            g
-        };
-        let k = self.nearest_to_region(c, g);
+        // Beyond its own tiles: first those nobody had, else any other
+        // client's; of those the one showing most of what this client
+        // rendered before, then the one nearest to its region, so that
+        // regions stay compact and only their borders move.
+        let (g, k) = self.take_for(c)?;
         Some(self.groups[g].remove(k))
     }
 
-    /// Which tile of group `g` (non-empty) client `c` should take: the
-    /// nearest along the curve to its region; for a client without one,
-    /// the farthest from every other client's region (so that clients
-    /// starting together grow their regions from far apart).
-    fn nearest_to_region(&self, c: &Name, g: usize) -> usize {
+    /// Which tile beyond its own client `c` should take: (group, index in
+    /// the group). A client without a region yet takes the tile farthest
+    /// from every other client's region, so that clients starting together
+    /// grow their regions from far apart.
+    fn take_for(&self, c: &Name) -> Option<(usize, usize)> {
         fn distance(set: &BTreeSet<u32>, r: u32) -> u32 {
             let below = set.range(..=r).next_back().map(|&b| r - b);
             let above = set.range(r..).next().map(|&a| a - r);
             below.into_iter().chain(above).min().unwrap_or(u32::MAX)
         }
-        let queue = &self.groups[g];
-        let rank = |k: usize| self.ranks[queue[k]];
-        let by = |score: &dyn Fn(u32) -> u32, nearest: bool| {
-            // Ties go to the lowest curve position.
-            (0..queue.len())
-                .min_by_key(|&k| {
-                    let d = score(rank(k));
-                    (if nearest { d } else { u32::MAX - d }, rank(k))
-                })
-                .unwrap_or(0)
+        let groups: Vec<usize> = if self.groups[0].is_empty() {
+            (1..self.groups.len()).collect()
+        } else {
+            vec![0]
         };
-        match self.region.get(c).filter(|r| !r.is_empty()) {
-            Some(own) => by(&|r| distance(own, r), true),
-            None => {
-                let others: BTreeSet<u32> = self
-                    .region
-                    .iter()
-                    .filter(|(n, _)| *n != c)
-                    .flat_map(|(_, r)| r.iter().copied())
-                    .collect();
-                by(&|r| distance(&others, r), false)
-            }
-        }
+        let own = self.region.get(c).filter(|r| !r.is_empty());
+        let others: BTreeSet<u32> = match own {
+            Some(_) => BTreeSet::new(),
+            None => self
+                .region
+                .iter()
+                .filter(|(n, _)| *n != c)
+                .flat_map(|(_, r)| r.iter().copied())
+                .collect(),
+        };
+        let votes = |i: usize| {
+            self.votes[i]
+                .iter()
+                .find(|(n, _)| n == c)
+                .map_or(0, |&(_, v)| v)
+        };
+        groups
+            .iter()
+            .flat_map(|&g| (0..self.groups[g].len()).map(move |k| (g, k)))
+            .min_by_key(|&(g, k)| {
+                let i = self.groups[g][k];
+                let r = self.ranks[i];
+                // Ties go to the lowest curve position.
+                match own {
+                    Some(own) => (std::cmp::Reverse(votes(i)), distance(own, r), r),
+                    None => (std::cmp::Reverse(0), u32::MAX - distance(&others, r), r),
+                }
+            })
     }
 
     fn median_time(&mut self) -> u64 {
@@ -514,6 +585,14 @@ impl Scheduler {
         let s = r.stats;
         frame.costs[i] = s.time_us;
         frame.owners[i] = Some(node.clone());
+        // A peer's floats: only finite ones can be projected.
+        frame.hits[i] = r
+            .hits
+            .as_slice()
+            .iter()
+            .map(|&h| Vec3::from_array(h))
+            .filter(|h| h.is_finite())
+            .collect();
         frame.times.push(s.time_us);
         let fs = &mut frame.stats;
         // Sums of what a peer reports: saturating, as a hostile or broken
@@ -555,19 +634,13 @@ impl Scheduler {
             out.push(Out::Assigned(number));
         }
         let (stats, owners) = frame.summary_messages();
-        // Affinity at work: how many tiles the client of the frame before
-        // rendered again.
-        let kept = self
-            .prev
-            .as_ref()
-            .filter(|p| p.grid == frame.grid)
-            .map_or(0, |p| {
-                p.owners
-                    .iter()
-                    .zip(&frame.owners)
-                    .filter(|(a, b)| a.is_some() && a == b)
-                    .count()
-            });
+        // Affinity at work: how many tiles their affinity client rendered.
+        let kept = frame
+            .affine
+            .iter()
+            .zip(&frame.owners)
+            .filter(|(a, b)| a.is_some() && a == b)
+            .count();
         info!(
             frame = number,
             tiles = stats.tiles,
@@ -594,6 +667,7 @@ impl Scheduler {
                 grid: frame.grid,
                 costs: frame.costs,
                 owners: frame.owners,
+                hits: frame.hits,
             });
             // Frames still being assigned go by the newest costs and owners.
             for f in self.frames.values_mut() {
