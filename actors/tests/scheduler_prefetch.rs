@@ -6,8 +6,8 @@ use dray_actors::names::{self, Shard, StoreRoutes};
 use dray_actors::scheduler::{run_prefetcher, PrefetcherOptions, TileGrid};
 use dray_actors::settings::kernel_camera;
 use dray_protocol::{
-    BoundedVec, Camera, CameraUpdate, ManifestData, Message, Name, PackedU32, PrefetchHint, Role,
-    Shutdown, TileOwners,
+    Blob, BoundedVec, Camera, CameraUpdate, ManifestData, Message, Name, PackedF32, PackedU32,
+    PrefetchHint, Role, Shutdown, TileOwners,
 };
 use dray_runtime::{InProcNet, Mailbox};
 use dray_scene::db::manifest::{Manifest, MANIFEST_FILE};
@@ -76,6 +76,9 @@ fn owners() -> TileOwners {
         tile_size: 32,
         owners: PackedU32(owners),
         clients: BoundedVec::new(vec![names::client_node(0), names::client_node(1)]).unwrap(),
+        // No content known: hints go by the tiles' owners.
+        hit_counts: Blob(vec![0; grid.count()]),
+        hits: PackedF32(Vec::new()),
     }
 }
 

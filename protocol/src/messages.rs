@@ -338,8 +338,10 @@ pub struct FrameAssigned {
     pub frame: u64,
 }
 
-/// Which client rendered each tile of a frame (for the prefetcher, which
-/// sends each client hints for the tiles it will probably get next).
+/// Which client rendered each tile of a frame, and where the tile's content
+/// lies (for the prefetcher, which sends each client hints for the tiles it
+/// will probably get next: those its content moves to, as the scheduler
+/// assigns them).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct TileOwners {
     /// Frame number.
@@ -354,6 +356,12 @@ pub struct TileOwners {
     pub owners: PackedU32,
     /// The client nodes.
     pub clients: BoundedVec<Name, MAX_STATS_CLIENTS>,
+    /// Per tile, row-major, how many of its hit positions `hits` holds
+    /// (at most [`MAX_TILE_HITS`]).
+    pub hit_counts: Blob,
+    /// The tiles' hit positions (x, y, z), tile after tile, as their
+    /// [`TileReport`]s gave them.
+    pub hits: PackedF32,
 }
 
 /// Every actor message. The variant order is the wire tag: append only.
@@ -489,6 +497,8 @@ impl MessageKind {
                     + crate::MAX_FRAME_TILES * 4
                     + 4
                     + MAX_STATS_CLIENTS * (crate::MAX_NAME_LEN + 1)
+                    + crate::MAX_FRAME_TILES * (1 + MAX_TILE_HITS * 12)
+                    + 2 * 5
             }
             MessageKind::VoxelError | MessageKind::Shutdown => ENVELOPE_OVERHEAD + text,
             MessageKind::TileDone => ENVELOPE_OVERHEAD + 3 * (tile_px * 4 + 4),
@@ -632,6 +642,22 @@ fn check_owners(o: &TileOwners) -> Result<(), String> {
     let n = o.clients.as_slice().len() as u32;
     if let Some(bad) = o.owners.0.iter().find(|&&c| c != u32::MAX && c >= n) {
         return Err(format!("owner {bad} but only {n} clients"));
+    }
+    if o.hit_counts.0.len() != tiles {
+        return Err(format!(
+            "{} hit counts for a frame of {tiles} tiles",
+            o.hit_counts.0.len()
+        ));
+    }
+    if let Some(bad) = o.hit_counts.0.iter().find(|&&c| c as usize > MAX_TILE_HITS) {
+        return Err(format!("{bad} hits in a tile, more than {MAX_TILE_HITS}"));
+    }
+    let total: usize = o.hit_counts.0.iter().map(|&c| c as usize).sum();
+    if o.hits.0.len() != 3 * total {
+        return Err(format!(
+            "{} hit coordinates for {total} hits",
+            o.hits.0.len()
+        ));
     }
     Ok(())
 }

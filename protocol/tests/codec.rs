@@ -345,6 +345,8 @@ fn maximal_messages_fit_their_limits() {
             tile_size: 16,
             owners: PackedU32(vec![MAX_STATS_CLIENTS as u32 - 1; MAX_FRAME_TILES]),
             clients: BoundedVec::new(vec![long('c'); MAX_STATS_CLIENTS]).unwrap(),
+            hit_counts: Blob(vec![MAX_TILE_HITS as u8; MAX_FRAME_TILES]),
+            hits: PackedF32(vec![f32::MAX; MAX_FRAME_TILES * MAX_TILE_HITS * 3]),
         }),
     ];
     for msg in msgs {

@@ -9,17 +9,18 @@
 //!   frames are outstanding in all is the display's `frames_ahead`).
 //! - [`run_scheduler`]: cuts each frame into [`TileGrid`] tiles and gives
 //!   them to clients as they ask ([`RequestWork`] credits), oldest frame
-//!   first. With affinity a client gets first the tiles it rendered in the
-//!   last completed frame (costliest first by that frame's times), then
-//!   steals the next tile of the client with the most tiles left; without,
-//!   a random tile. Tiles of a lost client, or outstanding past
+//!   first. With affinity a client gets first the tiles that show what it
+//!   rendered in the last completed frame (its hit samples reprojected
+//!   into the new camera; costliest first by that frame's times), then the
+//!   tiles of others that show most of its content or border its region;
+//!   without, a random tile. Tiles of a lost client, or outstanding past
 //!   `max(tile_deadline, 8 × median tile time)`, go to another client (the
 //!   first report wins). A complete frame yields [`FrameDone`] for the
 //!   display and [`TileOwners`] for the prefetcher.
 //! - [`run_prefetcher`]: fetches the manifest from a store, predicts the
 //!   next camera from the last two, samples it coarsely through the
 //!   high-level BSP and sends each client a [`PrefetchHint`] with the voxels
-//!   of the tiles it owned.
+//!   of the tiles it will probably render (by the same reprojection).
 //!
 //! [`CameraUpdate`]: dray_protocol::CameraUpdate
 //! [`FrameStart`]: dray_protocol::FrameStart
@@ -31,6 +32,7 @@
 
 mod assigner;
 mod prefetch;
+mod reproject;
 mod sched;
 mod tiles;
 

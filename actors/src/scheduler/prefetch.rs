@@ -74,11 +74,41 @@ pub fn predict_camera(prev: Option<(u64, &Camera)>, last: (u64, &Camera), next: 
     }
 }
 
+/// Per tile of `grid` seen through `camera`, the index (in `owners`'
+/// clients) of the client whose content of the `owners` frame lands in it
+/// most, else the tile's owner then (u32::MAX: none), as the scheduler
+/// assigns tiles.
+fn recipients(owners: &TileOwners, camera: &Camera, grid: &super::tiles::TileGrid) -> Vec<u32> {
+    let basis = kernel_camera(camera, owners.width, owners.height).basis();
+    let mut samples = Vec::new();
+    let mut at = 0;
+    for (&n, &c) in owners.hit_counts.0.iter().zip(&owners.owners.0) {
+        let end = at + 3 * n as usize;
+        if let Some(xyz) = owners.hits.0.get(at..end).filter(|_| c != u32::MAX) {
+            samples.extend(
+                xyz.chunks_exact(3)
+                    .map(|p| (c, Vec3::new(p[0], p[1], p[2])))
+                    .filter(|(_, p)| p.is_finite()),
+            );
+        }
+        at = end;
+    }
+    let votes = super::reproject::votes(grid, &basis, samples);
+    (0..grid.count())
+        .map(|t| match super::reproject::most(&votes[t]) {
+            Some(&c) => c,
+            None => owners.owners.0.get(t).copied().unwrap_or(u32::MAX),
+        })
+        .collect()
+}
+
 /// Per client node, the voxels its tiles of `camera` will probably enter,
 /// most urgent first (nearest along the rays, then most often), at most
 /// [`MAX_PREFETCH_IDS`]. Sample pixels are the centre pixels of each
-/// `step` × `step` block; each goes to the client that owned its tile in
-/// `owners` (tiles without an owner are skipped).
+/// `step` × `step` block; each goes to the client the scheduler will
+/// probably give its tile: the one whose content of the `owners` frame
+/// lands there most, else the tile's owner in that frame (tiles of
+/// neither are skipped).
 pub fn plan_hints(
     top: &TopLevel,
     owners: &TileOwners,
@@ -91,6 +121,7 @@ pub fn plan_hints(
     let step = step.max(1);
     let basis = kernel_camera(camera, width, height).basis();
     let grid = super::tiles::TileGrid::new(owners.width, owners.height, owners.tile_size);
+    let recipients = recipients(owners, camera, &grid);
     let clients = owners.clients.as_slice();
     // Per client: voxel → (nearest rank along a ray, how many rays).
     let mut seen: Vec<HashMap<u32, (u32, u32)>> = vec![HashMap::new(); clients.len()];
@@ -105,7 +136,7 @@ pub fn plan_hints(
             let Some(tile) = grid.tile_at(ox, oy) else {
                 continue;
             };
-            let Some(&c) = owners.owners.0.get(tile) else {
+            let Some(&c) = recipients.get(tile) else {
                 continue;
             };
             let Some(per) = seen.get_mut(c as usize) else {
@@ -277,5 +308,44 @@ pub async fn run_prefetcher(
             }
         }
         p.hint(&mb).await;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use dray_protocol::{Blob, BoundedVec, PackedF32};
+
+    #[test]
+    fn hints_follow_the_content_that_moves_into_a_tile() {
+        let camera = Camera {
+            eye: [0.0, 0.0, 5.0],
+            look: [0.0, 0.0, 0.0],
+            up: [0.0, 1.0, 0.0],
+            fov_y_deg: 50.0,
+        };
+        let b = kernel_camera(&camera, 64, 64).basis();
+        // What client 0 rendered in tile 0 is now in tile 3 (bottom right).
+        let moved = [
+            b.eye + b.direction(40, 50) * 5.0,
+            b.eye + b.direction(60, 33) * 5.0,
+        ];
+        let owners = TileOwners {
+            frame: 1,
+            width: 64,
+            height: 64,
+            tile_size: 32,
+            owners: PackedU32(vec![0, u32::MAX, 1, 1]),
+            clients: BoundedVec::new(vec![
+                Name::new("client-0").unwrap(),
+                Name::new("client-1").unwrap(),
+            ])
+            .unwrap(),
+            hit_counts: Blob(vec![2, 0, 0, 0]),
+            hits: PackedF32(moved.iter().flat_map(|p| p.to_array()).collect()),
+        };
+        let grid = super::super::tiles::TileGrid::new(64, 64, 32);
+        // Tiles where nothing lands keep their owner (or none).
+        assert_eq!(recipients(&owners, &camera, &grid), vec![0, u32::MAX, 1, 0]);
     }
 }

@@ -2,13 +2,14 @@
 //! hands them to clients on demand, with tile affinity, costliest tiles
 //! first, and reassignment of the tiles of lost or silent clients.
 
+use super::reproject;
 use super::tiles::TileGrid;
 use crate::settings::kernel_camera;
 use crate::ActorError;
 use dray_protocol::{
-    Address, AssignTile, BoundedVec, Camera, ClientFrameStats, FrameAssigned, FrameDone,
-    FrameStart, FrameStats, Message, Name, PackedU32, RenderSettings, TileOwners, TileReport,
-    MAX_STATS_CLIENTS,
+    Address, AssignTile, Blob, BoundedVec, Camera, ClientFrameStats, FrameAssigned, FrameDone,
+    FrameStart, FrameStats, Message, Name, PackedF32, PackedU32, RenderSettings, TileOwners,
+    TileReport, MAX_STATS_CLIENTS,
 };
 use dray_runtime::{Delivery, Mailbox};
 use dray_scene::rng::Rng;
@@ -185,35 +186,21 @@ impl Frame {
     #[allow(clippy::type_complexity)]
     fn reprojection(&self, prev: &Previous) -> (Vec<Option<Name>>, Vec<Vec<(Name, u32)>>) {
         let camera = kernel_camera(&self.camera, self.grid.width, self.grid.height).basis();
-        let mut votes: Vec<BTreeMap<&Name, u32>> = vec![BTreeMap::new(); self.tiles.len()];
-        for (hits, owner) in prev.hits.iter().zip(&prev.owners) {
-            let Some(owner) = owner else { continue };
-            for &h in hits {
-                let Some((x, y)) = camera.project(h) else {
-                    continue;
-                };
-                // Negative or huge coordinates saturate, then miss the grid.
-                if let Some(t) = self
-                    .grid
-                    .tile_at(x as u32, y as u32)
-                    .filter(|_| x >= 0.0 && y >= 0.0)
-                {
-                    *votes[t].entry(owner).or_default() += 1;
-                }
-            }
-        }
+        let samples = prev
+            .hits
+            .iter()
+            .zip(&prev.owners)
+            .filter_map(|(hits, owner)| Some((hits, owner.as_ref()?)))
+            .flat_map(|(hits, owner)| hits.iter().map(move |&h| (owner, h)));
+        let votes = reproject::votes(&self.grid, &camera, samples);
         let same_grid = prev.grid == self.grid;
         let owners = votes
             .iter()
             .enumerate()
-            .map(|(i, v)| {
-                // Most votes; among equals the first name, for repeatability.
-                let best = v.iter().max_by_key(|&(n, c)| (*c, std::cmp::Reverse(*n)));
-                match best {
-                    Some((n, _)) => Some((*n).clone()),
-                    None if same_grid => prev.owners[i].clone(),
-                    None => None,
-                }
+            .map(|(i, v)| match reproject::most(v) {
+                Some(n) => Some((*n).clone()),
+                None if same_grid => prev.owners[i].clone(),
+                None => None,
             })
             .collect();
         let votes = votes
@@ -226,10 +213,8 @@ impl Frame {
     /// Sorts the fresh tiles into queues: per affinity client when
     /// `affinity` (costliest first, or in index order), else one pool.
     ///
-    /// Without a previous frame of the same grid every tile is in the
-    /// "nobody's" group, in row-major order: nothing is known about the
-    /// costs yet, and handing out neighbouring tiles one after another keeps
-    /// the first frame's tiles of a client spread evenly over the image.
+    /// Without a previous frame every tile is in the "nobody's" group, and
+    /// clients take from it by their regions (see [`Frame::take_for`]).
     fn sort_fresh(&mut self, prev: Option<&Previous>, opts: &SchedulerOptions) {
         let fresh: Vec<usize> = (0..self.tiles.len())
             .filter(|&i| self.tiles[i].state == State::Fresh)
@@ -423,6 +408,15 @@ impl Frame {
             tile_size: self.grid.tile_size,
             owners: PackedU32(owners),
             clients: BoundedVec::new(names).unwrap_or_default(),
+            // At most MAX_TILE_HITS each: they came in TileReports.
+            hit_counts: Blob(self.hits.iter().map(|h| h.len() as u8).collect()),
+            hits: PackedF32(
+                self.hits
+                    .iter()
+                    .flatten()
+                    .flat_map(|h| h.to_array())
+                    .collect(),
+            ),
         };
         (stats, owners)
     }
