@@ -511,8 +511,17 @@ impl MessageKind {
         }
     }
 
-    /// Whether this kind travels on its own stream, so that it never delays
-    /// the small control messages behind it.
+    /// Whether a message of this kind `encoded` bytes long travels on a
+    /// stream of its own: large bulk messages do (see
+    /// [`crate::SMALL_BULK_MAX`]); everything else goes in order on the
+    /// control stream.
+    pub fn own_stream(self, encoded: usize) -> bool {
+        self.is_bulk() && encoded > crate::SMALL_BULK_MAX
+    }
+
+    /// Whether this kind may be large (a voxel, a tile's pixels), so that
+    /// it goes on a stream of its own when it is (see [`Self::own_stream`])
+    /// and never delays the small control messages behind it.
     pub fn is_bulk(self) -> bool {
         matches!(
             self,

@@ -49,7 +49,7 @@ impl InProcLink {
                 dst.deliver_local(env).await
             }
             Some(pipe) => {
-                let lane = if kind.is_bulk() {
+                let lane = if kind.own_stream(body.len()) {
                     Lane::Bulk
                 } else {
                     Lane::Control
