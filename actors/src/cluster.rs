@@ -201,6 +201,7 @@ fn display_options(cfg: &Config, opts: &RunOptions) -> Result<DisplayOptions, Cl
     };
     Ok(DisplayOptions {
         assigner: names::assigner(),
+        scheduler: names::scheduler(),
         width: cfg.render.width,
         height: cfg.render.height,
         cameras: frame_cameras(cfg)?,

@@ -16,8 +16,9 @@
 //! ([`Message::FrameStart`]) once the previous one is fully assigned
 //! ([`Message::FrameAssigned`]). Clients ask the scheduler for tiles
 //! ([`Message::RequestWork`]), fetch voxels from the store of each voxel's
-//! shard, send the pixels to the display ([`Message::TileDone`]) and a
-//! report to the scheduler ([`Message::TileReport`]). The scheduler tells
+//! shard and send the pixels to the display ([`Message::TileDone`]), which
+//! reports each tile to the scheduler once it has its pixels
+//! ([`Message::TileReport`]). The scheduler tells
 //! the display when a frame is complete ([`Message::FrameDone`]) and the
 //! prefetcher who rendered which tile ([`Message::TileOwners`]).
 //!

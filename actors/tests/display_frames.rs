@@ -77,6 +77,7 @@ fn tile_done(frame: u64, r: TileRect, garbage: bool) -> TileDone {
             rays: r.area() as u64,
             ..TileStats::default()
         },
+        hits: Default::default(),
     }
 }
 
@@ -96,6 +97,8 @@ fn name(s: &str) -> Name {
 struct Cluster {
     _net: InProcNet,
     assigner: Mailbox,
+    /// Gets the display's tile reports.
+    scheduler: Mailbox,
     clients: Vec<Mailbox>,
     display: Option<JoinHandle<Result<DisplaySummary, ActorError>>>,
 }
@@ -105,6 +108,7 @@ fn start(frames: usize, ahead: usize, output: Option<std::path::PathBuf>) -> Clu
     let sched = net.add_node(name("scheduler"), Role::Scheduler).unwrap();
     let disp = net.add_node(name("display"), Role::Display).unwrap();
     let assigner = sched.mailbox(name(names::ASSIGNER), 256).unwrap();
+    let scheduler = sched.mailbox(name(names::SCHEDULER), 4096).unwrap();
     let clients = (0..2)
         .map(|i| {
             net.add_node(names::client_node(i), Role::Client)
@@ -116,6 +120,7 @@ fn start(frames: usize, ahead: usize, output: Option<std::path::PathBuf>) -> Clu
     let mb = disp.mailbox(name(names::DISPLAY), 1024).unwrap();
     let opts = DisplayOptions {
         assigner: names::assigner(),
+        scheduler: names::scheduler(),
         width: W,
         height: H,
         cameras: (0..frames).map(camera).collect(),
@@ -129,6 +134,7 @@ fn start(frames: usize, ahead: usize, output: Option<std::path::PathBuf>) -> Clu
     Cluster {
         _net: net,
         assigner,
+        scheduler,
         clients,
         display: Some(tokio::spawn(run_display(mb, opts))),
     }
@@ -281,6 +287,40 @@ async fn display_assembles_frames_from_out_of_order_tiles_and_writes_files() {
     }
     assert_eq!(s.tiles_ignored, 0);
     assert_eq!(s.duplicate_tiles, 4);
+    // The scheduler heard of each tile once, when its first copy came,
+    // naming the client that sent that copy.
+    let mut reported = std::collections::HashMap::new();
+    while let Some(d) = c.scheduler.try_recv() {
+        let Delivery::Message { from, msg } = d else {
+            continue;
+        };
+        assert_eq!(from, names::display());
+        let Message::TileReport(r) = msg else {
+            panic!("the scheduler got {msg:?}");
+        };
+        assert!(r.stats.rays > 0, "the client's costs passed on");
+        let first = reported.insert((r.frame, r.tile), r.client.clone());
+        assert!(
+            first.is_none(),
+            "{:?} of frame {} reported twice",
+            r.tile,
+            r.frame
+        );
+    }
+    assert_eq!(reported.len(), 4 * tiles().len());
+    for f in 0..4u64 {
+        let mut ts = tiles();
+        ts.reverse();
+        let n = ts.len();
+        ts.rotate_left(f as usize % n);
+        for (i, t) in ts.iter().enumerate() {
+            assert_eq!(
+                reported[&(f, *t)],
+                names::client_node(i % 2),
+                "frame {f} tile {t:?}"
+            );
+        }
+    }
     assert_eq!(s.total_rays, 4 * (W * H) as u64);
     assert_eq!(s.frames[0].cache_hit_rate, 0.75);
     assert_eq!(s.frames[0].tiles_per_client, "client-0:3 client-1:3");

@@ -75,6 +75,7 @@ fn start(stop: impl std::future::Future<Output = ()> + Send + 'static) -> Fixtur
     let mb = disp.mailbox(name(names::DISPLAY), 64).unwrap();
     let opts = DisplayOptions {
         assigner: names::assigner(),
+        scheduler: names::scheduler(),
         width: W,
         height: H,
         cameras: vec![start_cam()],
@@ -127,6 +128,7 @@ impl Fixture {
             depth: None,
             prim_ids: None,
             stats: TileStats::default(),
+            hits: Default::default(),
         };
         let d = names::display();
         self.assigner

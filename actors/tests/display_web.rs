@@ -173,6 +173,7 @@ async fn display_web_viewer_shows_the_displays_latest_frame() {
         mb,
         DisplayOptions {
             assigner: names::assigner(),
+            scheduler: names::scheduler(),
             width: 8,
             height: 4,
             cameras: vec![cam; 3],
@@ -212,6 +213,7 @@ async fn display_web_viewer_shows_the_displays_latest_frame() {
                 depth: None,
                 prim_ids: None,
                 stats: TileStats::default(),
+                hits: Default::default(),
             }),
         )
         .await

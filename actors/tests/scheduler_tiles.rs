@@ -121,6 +121,7 @@ fn spawn_client(net: &InProcNet, i: usize, b: Behaviour, log: Log) -> (Bus, Join
                         client: i,
                     });
                     let report = TileReport {
+                        client: names::client_node(i),
                         frame,
                         tile,
                         stats: stats_for(&tile, (b.cost)(&tile)),
@@ -840,4 +841,52 @@ async fn scheduler_affinity_follows_content_that_moves_across_the_screen() {
         assert!(share >= 0.7, "frames {k} and {}: {share}", k + 1);
     }
     c.stop().await;
+}
+
+#[tokio::test(start_paused = true)]
+async fn scheduler_takes_tile_reports_from_the_display_but_not_from_strangers() {
+    // Client 0 takes tiles and never reports them; the display, which
+    // has the pixels, does. A third client's reports about client 0's
+    // tiles are not believed.
+    let silent = Behaviour {
+        silent: true,
+        slots: 64,
+        ..Behaviour::normal()
+    };
+    let mut c = cluster(options(true, Duration::from_secs(600)), W, H, &[silent]);
+    let stranger_bus = c.net.add_node(names::client_node(9), Role::Client).unwrap();
+    let stranger = stranger_bus.mailbox(name(names::CLIENT), 16).unwrap();
+    c.camera(0).await;
+    let grid = TileGrid::new(W, H, 32);
+    // Every tile handed out to client 0 (it asked for more than all).
+    for _ in 0..100 {
+        if c.assignments_in(0, &grid).len() == grid.count() {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    assert_eq!(c.assignments_in(0, &grid).len(), grid.count());
+    let report = |i: usize| {
+        Message::TileReport(TileReport {
+            client: names::client_node(0),
+            frame: 0,
+            tile: grid.rect(i),
+            stats: stats_for(&grid.rect(i), 1000),
+            hits: BoundedVec::default(),
+        })
+    };
+    for i in 0..grid.count() {
+        stranger.send(&names::scheduler(), report(i)).await.unwrap();
+    }
+    let waited = tokio::time::timeout(Duration::from_secs(30), c.frame_done()).await;
+    assert!(waited.is_err(), "a stranger's reports completed the frame");
+    for i in 0..grid.count() {
+        c.display
+            .send(&names::scheduler(), report(i))
+            .await
+            .unwrap();
+    }
+    assert_eq!(c.frame_done().await.frame, 0);
+    let s = c.stop().await;
+    assert_eq!((s.frames, s.reassigned), (1, 0));
 }

@@ -65,6 +65,7 @@ pub fn one_of_each(voxel_bytes: usize) -> Vec<Message> {
                 bytes_fetched: 123_456,
                 stall_us: 77,
             },
+            hits: BoundedVec::new(vec![[0.5, 1.5, -2.0]]).expect("one entry is under the bound"),
         }),
         Message::FetchVoxel(FetchVoxel { id: 42 }),
         Message::VoxelLoaded(VoxelLoaded {
@@ -115,6 +116,7 @@ pub fn one_of_each(voxel_bytes: usize) -> Vec<Message> {
             data: Blob((0..4096).map(|i| (i % 13) as u8).collect()),
         }),
         Message::TileReport(TileReport {
+            client: Name::new("client-3").expect("constant name is valid"),
             frame: 7,
             tile,
             stats: TileStats {
@@ -125,7 +127,8 @@ pub fn one_of_each(voxel_bytes: usize) -> Vec<Message> {
                 bytes_fetched: 4_000,
                 stall_us: 10,
             },
-            hits: BoundedVec::new(vec![[1.0, -2.5, 3.25], [0.0, 1e9, -7.0]]).unwrap(),
+            hits: BoundedVec::new(vec![[1.0, -2.5, 3.25], [0.0, 1e9, -7.0]])
+                .expect("two entries are under the bound"),
         }),
         Message::FrameStart(FrameStart {
             frame: 8,

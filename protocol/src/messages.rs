@@ -175,6 +175,10 @@ pub struct TileDone {
     pub prim_ids: Option<PackedU32>,
     /// Costs.
     pub stats: TileStats,
+    /// World positions of the tile's primary hits at a few pixels spread
+    /// over it (misses left out), which the display passes on to the
+    /// scheduler in the tile's [`TileReport`].
+    pub hits: BoundedVec<[f32; 3], MAX_TILE_HITS>,
 }
 
 /// A client asks a store for a voxel.
@@ -296,10 +300,14 @@ pub struct ManifestData {
     pub data: Blob,
 }
 
-/// A client tells the scheduler that a tile is done (its pixels went to
-/// the display in a [`TileDone`]).
+/// The display tells the scheduler that a tile's pixels arrived (in a
+/// [`TileDone`]): a tile counts as done only once the display has it, so a
+/// client that dies with pixels still on their way loses no tile. (A
+/// client may also report its own tiles.)
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct TileReport {
+    /// The client that rendered the tile.
+    pub client: Name,
     /// Frame number.
     pub frame: u64,
     /// The tile.
@@ -490,7 +498,9 @@ impl MessageKind {
             | MessageKind::FetchManifest
             | MessageKind::FrameStart
             | MessageKind::FrameAssigned => ENVELOPE_OVERHEAD,
-            MessageKind::TileReport => ENVELOPE_OVERHEAD + MAX_TILE_HITS * 12 + 1,
+            MessageKind::TileReport => {
+                ENVELOPE_OVERHEAD + crate::MAX_NAME_LEN + 1 + MAX_TILE_HITS * 12 + 1
+            }
             MessageKind::ManifestData => BULK_FRAME_MAX,
             MessageKind::TileOwners => {
                 ENVELOPE_OVERHEAD
@@ -501,7 +511,9 @@ impl MessageKind {
                     + 2 * 5
             }
             MessageKind::VoxelError | MessageKind::Shutdown => ENVELOPE_OVERHEAD + text,
-            MessageKind::TileDone => ENVELOPE_OVERHEAD + 3 * (tile_px * 4 + 4),
+            MessageKind::TileDone => {
+                ENVELOPE_OVERHEAD + 3 * (tile_px * 4 + 4) + MAX_TILE_HITS * 12 + 1
+            }
             MessageKind::VoxelLoaded => BULK_FRAME_MAX,
             MessageKind::FrameDone => {
                 ENVELOPE_OVERHEAD + MAX_STATS_CLIENTS * (crate::MAX_NAME_LEN + 1 + 5 * 10) + 2 * 10

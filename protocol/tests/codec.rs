@@ -272,6 +272,7 @@ fn maximal_messages_fit_their_limits() {
             depth: Some(PackedF32(vec![f32::INFINITY; n])),
             prim_ids: Some(PackedU32(vec![u32::MAX; n])),
             stats,
+            hits: BoundedVec::new(vec![[f32::MAX; 3]; MAX_TILE_HITS]).unwrap(),
         }),
         Message::FetchVoxel(FetchVoxel { id: u32::MAX }),
         Message::VoxelLoaded(VoxelLoaded {
@@ -312,6 +313,7 @@ fn maximal_messages_fit_their_limits() {
             data: Blob(vec![1; MAX_VOXEL_BYTES]),
         }),
         Message::TileReport(TileReport {
+            client: long('r'),
             frame: u64::MAX,
             tile,
             stats,

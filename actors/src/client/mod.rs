@@ -4,8 +4,8 @@
 //! and the voxel table), then asks the scheduler for `threads +
 //! tiles_ahead` tiles. Each [`AssignTile`] goes to the least busy render
 //! thread ([`worker`]); each finished tile goes to the display
-//! ([`TileDone`]) and is reported to the scheduler ([`TileReport`]), which
-//! is asked for one more tile. Voxels come through the [`loader`] into the
+//! ([`TileDone`]), which reports it to the scheduler, and the scheduler is
+//! asked for one more tile. Voxels come through the [`loader`] into the
 //! [`cache`], shared by every render thread.
 //!
 //! The actor task itself only does bookkeeping: messages go out through
@@ -24,7 +24,7 @@ use crate::ActorError;
 use cache::VoxelCache;
 use dray_protocol::{
     Address, AssignTile, Blob, BoundedVec, FetchManifest, Message, PackedF32, PackedU32,
-    RequestWork, TileDone, TileReport, TileStats,
+    RequestWork, TileDone, TileStats,
 };
 use dray_runtime::{ActorRef, Delivery, Mailbox};
 use dray_scene::db::manifest::Manifest;
@@ -436,15 +436,12 @@ fn finish_tile(
                 depth: job.want_depth.then_some(PackedF32(img.depth)),
                 prim_ids: job.want_prim_ids.then_some(PackedU32(img.primid)),
                 stats,
-            };
-            let _ = out.send((opts.display.clone(), Message::TileDone(done)));
-            let report = TileReport {
-                frame: job.frame,
-                tile: job.tile,
-                stats,
                 hits: BoundedVec::new(hits).unwrap_or_default(),
             };
-            let _ = out.send((opts.scheduler.clone(), Message::TileReport(report)));
+            // The display reports the tile to the scheduler once it has
+            // the pixels: a tile whose pixels die with this client is
+            // reassigned, never counted done.
+            let _ = out.send((opts.display.clone(), Message::TileDone(done)));
         }
         Err(e) => warn!(frame = job.frame, tile = ?job.tile, error = %e, "tile failed"),
     }

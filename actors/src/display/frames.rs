@@ -289,6 +289,7 @@ mod tests {
             depth: None,
             prim_ids: None,
             stats: TileStats::default(),
+            hits: Default::default(),
         }
     }
 

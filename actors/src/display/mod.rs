@@ -43,7 +43,7 @@ pub use path::{CameraPath, Keyframe, PathError};
 pub use web::WebViewer;
 
 use crate::ActorError;
-use dray_protocol::{Address, CameraUpdate, Message, Ping};
+use dray_protocol::{Address, CameraUpdate, Message, Ping, TileReport};
 use dray_runtime::{Delivery, Mailbox, SendError};
 use frames::{Frames, ReadyFrame};
 use metrics::CsvLog;
@@ -73,6 +73,9 @@ pub const IDLE_FRAMES: u64 = 4;
 pub struct DisplayOptions {
     /// The frame assigner, which gets the camera updates.
     pub assigner: Address,
+    /// The scheduler, which hears from here of each tile whose pixels
+    /// arrived.
+    pub scheduler: Address,
     /// Image width.
     pub width: u32,
     /// Image height.
@@ -572,7 +575,26 @@ pub async fn run_display_until(
             Some(Delivery::Message { from, msg }) => match msg {
                 Message::TileDone(t) => match d.frames.add_tile(&t, now) {
                     Ok(0) => d.summary.duplicate_tiles += 1,
-                    Ok(_) => {}
+                    Ok(_) => {
+                        // Now the tile is done: the scheduler hears it from
+                        // here, so a tile lost on its way never counts.
+                        let report = TileReport {
+                            client: from.node.clone(),
+                            frame: t.frame,
+                            tile: t.tile,
+                            stats: t.stats,
+                            hits: t.hits,
+                        };
+                        if let Err(e) = mb
+                            .send(&d.opts.scheduler, Message::TileReport(report))
+                            .await
+                        {
+                            debug!(
+                                frame = t.frame,
+                                "cannot report a tile to the scheduler: {e}"
+                            );
+                        }
+                    }
                     Err(why) => {
                         warn!(from = %from, frame = t.frame, "tile ignored: {why}");
                         d.summary.tiles_ignored += 1;

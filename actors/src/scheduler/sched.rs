@@ -755,7 +755,17 @@ pub async fn run_scheduler(
                 Some(Delivery::Message { from, msg }) => match msg {
                     Message::RequestWork(r) => s.request_work(from, r.slots),
                     Message::FrameStart(f) => s.frame_start(f, &mut out),
-                    Message::TileReport(r) => s.report(&from.node, r, &mut out),
+                    // From the display, which has the pixels, or from the
+                    // client itself; nobody else speaks for a client.
+                    Message::TileReport(r)
+                        if from.node == s.opts.display.node || from.node == r.client =>
+                    {
+                        let client = r.client.clone();
+                        s.report(&client, r, &mut out)
+                    }
+                    Message::TileReport(r) => {
+                        warn!(%from, client = %r.client, "tile report about another client ignored")
+                    }
                     Message::Shutdown(r) => {
                         info!(reason = %r.reason, frames = s.summary.frames, "scheduler stops");
                         return Ok(s.summary);

@@ -153,7 +153,6 @@ pub struct Assembled {
     pub rgba: Vec<[u8; 4]>,
     pub depth: Vec<f32>,
     pub primid: Vec<u32>,
-    pub reports: usize,
     pub max_outstanding: usize,
 }
 
@@ -187,12 +186,12 @@ pub async fn render_frame(
         rgba: vec![[0; 4]; n],
         depth: vec![f32::NAN; n],
         primid: vec![0xdead_beef; n],
-        reports: 0,
         max_outstanding: 0,
     };
     let mut slots = 0usize;
     let mut outstanding = 0usize;
     let mut done = 0usize;
+    let mut hit_samples = 0usize;
     let deadline = tokio::time::Instant::now() + Duration::from_secs(120);
     while done < total {
         while slots > 0 && !tiles.is_empty() {
@@ -216,8 +215,11 @@ pub async fn render_frame(
                 .unwrap();
         }
         let d = tokio::select! {
-            d = fe.scheduler.recv() => d,
+            // The client sends a tile's pixels before it asks for the next
+            // tile: take them first, so in-progress tiles are counted right.
+            biased;
             d = fe.display.recv() => d,
+            d = fe.scheduler.recv() => d,
             _ = tokio::time::sleep_until(deadline) => panic!("frame not done in time: {done} of {total} tiles"),
         };
         if let Delivery::Message { msg, .. } = d.expect("bus gone") {
@@ -239,16 +241,11 @@ pub async fn render_frame(
                     }
                     slots += r.slots as usize
                 }
-                Message::TileReport(r) => {
-                    assert_eq!(r.frame, 7);
-                    assert!(r.stats.rays >= (TILE * TILE) as u64);
-                    // The client reports a tile before asking for the next
-                    // one, on the same link: count in-progress tiles here.
-                    outstanding -= 1;
-                    out.reports += 1;
-                }
                 Message::TileDone(t) => {
                     assert_eq!(t.frame, 7);
+                    assert!(t.stats.rays >= (TILE * TILE) as u64);
+                    hit_samples += t.hits.as_slice().len();
+                    outstanding -= 1;
                     done += 1;
                     let r = t.tile;
                     let depth = t.depth.expect("depth asked for").0;
@@ -267,14 +264,7 @@ pub async fn render_frame(
             }
         }
     }
-    // Reports may trail the pixels a little.
-    while out.reports < total {
-        match tokio::time::timeout(Duration::from_secs(10), fe.scheduler.recv_message()).await {
-            Ok(Some((_, Message::TileReport(_)))) => out.reports += 1,
-            Ok(Some(_)) => {}
-            _ => break,
-        }
-    }
+    assert!(hit_samples > 0, "the tiles carry their hit samples");
     fe.scheduler
         .send(
             client,
