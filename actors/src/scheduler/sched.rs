@@ -95,9 +95,14 @@ struct Frame {
     settings: RenderSettings,
     grid: TileGrid,
     tiles: Vec<Tile>,
-    /// Affinity: per previous owner (and one group for tiles nobody owned),
-    /// the fresh tiles, `pop()` giving the next one.
+    /// Affinity: per previous owner, the fresh tiles, `pop()` giving the
+    /// next one (group 0 stays empty: see `unowned`).
     groups: Vec<Vec<usize>>,
+    /// Affinity: the fresh tiles nobody owned, by curve position.
+    unowned: BTreeMap<u32, usize>,
+    /// Affinity: the curve position of the tile each client got last (its
+    /// region's growing edge).
+    last: HashMap<Name, u32>,
     group_of: HashMap<Name, usize>,
     /// Each tile's position along the grid's space-filling curve.
     ranks: Vec<u32>,
@@ -149,6 +154,8 @@ impl Frame {
                 })
                 .collect(),
             groups: Vec::new(),
+            unowned: BTreeMap::new(),
+            last: HashMap::new(),
             group_of: HashMap::new(),
             ranks: grid.curve_ranks(),
             region: HashMap::new(),
@@ -247,9 +254,13 @@ impl Frame {
                     .insert(self.ranks[i]);
             }
         }
+        self.unowned.clear();
         for i in fresh {
             let g = match &self.affine[i] {
-                None => 0,
+                None => {
+                    self.unowned.insert(self.ranks[i], i);
+                    continue;
+                }
                 Some(owner) => {
                     let next = self.groups.len();
                     let g = *self.group_of.entry(owner.clone()).or_insert(next);
@@ -314,44 +325,69 @@ impl Frame {
         // client's; of those the one showing most of what this client
         // rendered before, then the one nearest to its region, so that
         // regions stay compact and only their borders move.
-        let (g, k) = self.take_for(c)?;
-        Some(self.groups[g].remove(k))
+        self.take_for(c)
     }
 
-    /// Which tile beyond its own client `c` should take: (group, index in
-    /// the group). A client without a region yet takes the tile farthest
-    /// from every other client's region, so that clients starting together
-    /// grow their regions from far apart.
-    fn take_for(&self, c: &Name) -> Option<(usize, usize)> {
+    /// The tile beyond its own that client `c` takes, taken out of its
+    /// queue. A client without a region yet takes the tile farthest from
+    /// every other client's region, so that clients starting together grow
+    /// their regions from far apart.
+    fn take_for(&mut self, c: &Name) -> Option<usize> {
         fn distance(set: &BTreeSet<u32>, r: u32) -> u32 {
             let below = set.range(..=r).next_back().map(|&b| r - b);
             let above = set.range(r..).next().map(|&a| a - r);
             below.into_iter().chain(above).min().unwrap_or(u32::MAX)
         }
-        let groups: Vec<usize> = if self.groups[0].is_empty() {
-            (1..self.groups.len()).collect()
-        } else {
-            vec![0]
-        };
         let own = self.region.get(c).filter(|r| !r.is_empty());
-        let others: BTreeSet<u32> = match own {
-            Some(_) => BTreeSet::new(),
-            None => self
-                .region
+        let others = || -> BTreeSet<u32> {
+            self.region
                 .iter()
                 .filter(|(n, _)| *n != c)
                 .flat_map(|(_, r)| r.iter().copied())
-                .collect(),
+                .collect()
         };
+        if !self.unowned.is_empty() {
+            // Nobody's tiles show nothing anyone rendered: by position
+            // alone. Nearest to the client's newest tile, found in the
+            // ordered set (the first frame takes every tile this way).
+            let rank = match own {
+                Some(own) => {
+                    let at = self
+                        .last
+                        .get(c)
+                        .copied()
+                        .unwrap_or_else(|| own.iter().copied().next().unwrap_or(0));
+                    let below = self.unowned.range(..=at).next_back().map(|(&r, _)| r);
+                    let above = self.unowned.range(at..).next().map(|(&r, _)| r);
+                    match (below, above) {
+                        (Some(b), Some(a)) if a - at < at - b => a,
+                        (Some(b), _) => b,
+                        (None, a) => a?,
+                    }
+                }
+                None => {
+                    let others = others();
+                    *self
+                        .unowned
+                        .keys()
+                        .min_by_key(|&&r| (u32::MAX - distance(&others, r), r))?
+                }
+            };
+            return self.unowned.remove(&rank);
+        }
         let votes = |i: usize| {
             self.votes[i]
                 .iter()
                 .find(|(n, _)| n == c)
                 .map_or(0, |&(_, v)| v)
         };
-        groups
-            .iter()
-            .flat_map(|&g| (0..self.groups[g].len()).map(move |k| (g, k)))
+        let others = if own.is_none() {
+            others()
+        } else {
+            BTreeSet::new()
+        };
+        let (g, k) = (1..self.groups.len())
+            .flat_map(|g| (0..self.groups[g].len()).map(move |k| (g, k)))
             .min_by_key(|&(g, k)| {
                 let i = self.groups[g][k];
                 let r = self.ranks[i];
@@ -360,7 +396,8 @@ impl Frame {
                     Some(own) => (std::cmp::Reverse(votes(i)), distance(own, r), r),
                     None => (std::cmp::Reverse(0), u32::MAX - distance(&others, r), r),
                 }
-            })
+            })?;
+        Some(self.groups[g].remove(k))
     }
 
     fn median_time(&mut self) -> u64 {
@@ -522,6 +559,7 @@ impl Scheduler {
                 if self.opts.affinity {
                     let rank = frame.ranks[i];
                     frame.region.entry(node.clone()).or_default().insert(rank);
+                    frame.last.insert(node.clone(), rank);
                 }
                 let t = &mut frame.tiles[i];
                 if t.state == State::Fresh {
