@@ -235,3 +235,36 @@ fn a_stranger_certificate_is_refused_and_the_cluster_goes_on() {
     let (summary, _) = finish(cluster, &rx);
     assert_complete(&summary, 40);
 }
+
+#[test]
+fn a_node_that_dies_while_the_cluster_comes_up_stops_it_at_once_naming_the_node() {
+    let (dir, config) = setup(10, 2);
+    let cfg = dray_config::Config::load(&config).unwrap();
+    // Certificates for every node but client-1, which therefore exits
+    // before it joins: the display would wait for it forever.
+    let names: Vec<String> = cfg
+        .node_names()
+        .into_iter()
+        .filter(|n| n != "client-1")
+        .collect();
+    let refs: Vec<&str> = names.iter().map(String::as_str).collect();
+    init_cluster(&cfg.certs.dir, &refs).unwrap();
+    let started = Instant::now();
+    let out = Command::new(env!("CARGO_BIN_EXE_dray"))
+        .args(["cluster", config.to_str().unwrap()])
+        .env("RUST_LOG", "warn")
+        .output()
+        .unwrap();
+    let elapsed = started.elapsed();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "the cluster ran without client-1");
+    assert!(
+        stderr.contains("client-1 died (exit code 1, before the cluster came up)"),
+        "{stderr}"
+    );
+    // Its own words on why, from its last log lines.
+    assert!(stderr.contains("client-1.pem"), "{stderr}");
+    // Well before the 120 s startup timeout.
+    assert!(elapsed < Duration::from_secs(60), "took {elapsed:?}");
+    drop(dir);
+}

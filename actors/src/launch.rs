@@ -11,6 +11,9 @@
 //! the supervisor waits for it (up to `STOP_TIMEOUT`; a second Ctrl-C
 //! stops everything at once).
 //!
+//! A node that dies while the cluster comes up ends the startup at once,
+//! named with its last log lines (a store is restarted instead).
+//!
 //! Faults while running: a client that dies is reported and the others
 //! take its tiles (the scheduler reassigns them); a store that dies is
 //! restarted (clients re-send their fetches when it is back); the
@@ -278,7 +281,9 @@ pub async fn cluster(
     let interactive = crate::cluster::interactive(cfg);
     let mut interrupted: Option<tokio::time::Instant> = None;
     let mut tick = tokio::time::interval(Duration::from_millis(50));
-    let outcome: Result<(), LaunchError> = loop {
+    // The node whose death ended the run, to name its last log lines.
+    let mut died = None;
+    let mut outcome: Result<(), LaunchError> = loop {
         tokio::select! {
             ev = rx.recv() => match ev {
                 Some(Event::Line { node, line }) => {
@@ -339,12 +344,23 @@ pub async fn cluster(
                     let what = status_text(&status);
                     if summary.is_some() {
                         events.push(format!("{name} ended with {what} after the run"));
+                    } else if !all_ready && !name.starts_with("store-") {
+                        // The display waits for every client before it is
+                        // ready: without this node the cluster never comes
+                        // up, and waiting out STARTUP_TIMEOUT says less.
+                        died = Some(i);
+                        fatal = Some(LaunchError::Died {
+                            node: name,
+                            status: format!("{what}, before the cluster came up"),
+                            log: tail_text(&procs[i]),
+                        });
                     } else if name.starts_with("client-") {
                         let alive = procs.iter().filter(|p| p.name.starts_with("client-") && !p.done).count();
                         let e = format!("{name} died ({what}); {alive} clients go on and take its tiles");
                         eprintln!("cluster: {e}");
                         events.push(e);
                         if alive == 0 {
+                            died = Some(i);
                             fatal = Some(LaunchError::Died { node: "every client".into(), status: what, log: tail_text(&procs[i]) });
                         }
                     } else if name.starts_with("store-") && procs[i].restarts < STORE_RESTARTS {
@@ -356,6 +372,7 @@ pub async fn cluster(
                             fatal = Some(err);
                         }
                     } else {
+                        died = Some(i);
                         fatal = Some(LaunchError::Died { node: name, status: what, log: tail_text(&procs[i]) });
                     }
                 }
@@ -366,6 +383,7 @@ pub async fn cluster(
                     let status = procs[display].child.as_mut().and_then(|c| c.try_wait().ok().flatten());
                     match status {
                         Some(s) if !s.success() => {
+                            died = Some(display);
                             break Err(LaunchError::Died { node: "display".into(), status: status_text(&s), log: tail_text(&procs[display]) });
                         }
                         _ => break Ok(()),
@@ -387,13 +405,15 @@ pub async fn cluster(
     // they print last (the summary may be among it, and a node blocked on
     // a full pipe could not exit), then read their output to its end.
     drop(tx);
+    let mut late_logs = Vec::new();
     {
-        let mut summary_from = |ev: Event| {
-            if let Event::Line { line, .. } = ev {
+        let mut summary_from = |ev: Event| match ev {
+            Event::Line { line, .. } => {
                 if let Some(json) = line.strip_prefix("summary ") {
                     summary = serde_json::from_str(json).ok();
                 }
             }
+            Event::Log { node, line } => late_logs.push((node, line)),
         };
         let stopping = stop_all(&mut procs, outcome.is_ok(), &mut events);
         tokio::pin!(stopping);
@@ -408,6 +428,19 @@ pub async fn cluster(
         while let Ok(Some(ev)) = tokio::time::timeout(STOP_TIMEOUT, rx.recv()).await {
             summary_from(ev);
         }
+    }
+    // A node that died has usually said why on its last line, which may
+    // have been read only now.
+    for (node, line) in late_logs {
+        eprintln!("[{}] {line}", procs[node].name);
+        let t = &mut procs[node].tail;
+        if t.len() == LOG_TAIL {
+            t.pop_front();
+        }
+        t.push_back(line);
+    }
+    if let (Err(LaunchError::Died { log, .. }), Some(i)) = (&mut outcome, died) {
+        *log = tail_text(&procs[i]);
     }
     outcome?;
     let summary = summary.ok_or_else(|| LaunchError::Died {
