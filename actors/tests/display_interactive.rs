@@ -3,7 +3,7 @@
 //! the frames.
 
 use dray_actors::display::{
-    moves, run_display_until, DisplayOptions, DisplaySummary, Move, WebViewer, IDLE_FRAMES,
+    moves, run_display_with_viewer, DisplayOptions, DisplaySummary, Move, WebViewer, IDLE_FRAMES,
 };
 use dray_actors::{names, ActorError};
 use dray_protocol::{
@@ -52,13 +52,6 @@ fn start_cam() -> Camera {
     }
 }
 
-fn free_port() -> SocketAddr {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-}
-
 struct Fixture {
     _net: InProcNet,
     assigner: Mailbox,
@@ -66,8 +59,13 @@ struct Fixture {
     display: JoinHandle<Result<DisplaySummary, ActorError>>,
 }
 
-fn start(stop: impl std::future::Future<Output = ()> + Send + 'static) -> Fixture {
-    let web = free_port();
+/// A display with an interactive viewer on a port the system picks (bound
+/// before the display runs, so no other test can take it in between).
+async fn start(stop: impl std::future::Future<Output = ()> + Send + 'static) -> Fixture {
+    let (viewer, moves) = WebViewer::start_interactive("127.0.0.1:0".parse().unwrap())
+        .await
+        .unwrap();
+    let web = viewer.local_addr();
     let net = InProcNet::new();
     let sched = net.add_node(name("scheduler"), Role::Scheduler).unwrap();
     let disp = net.add_node(name("display"), Role::Display).unwrap();
@@ -90,7 +88,12 @@ fn start(stop: impl std::future::Future<Output = ()> + Send + 'static) -> Fixtur
         _net: net,
         assigner,
         web,
-        display: tokio::spawn(run_display_until(mb, opts, stop)),
+        display: tokio::spawn(run_display_with_viewer(
+            mb,
+            opts,
+            Some((viewer, Some(moves))),
+            stop,
+        )),
     }
 }
 
@@ -168,7 +171,7 @@ const SOON: Duration = Duration::from_secs(5);
 
 #[tokio::test]
 async fn display_interactive_follows_moves_from_the_web_viewer() {
-    let mut f = start(std::future::pending());
+    let mut f = start(std::future::pending()).await;
     let c0 = start_cam();
     let step = moves::step_for(&c0);
     let (seq, cam) = f.camera_within(SOON).await.expect("first camera");
@@ -255,7 +258,8 @@ async fn display_interactive_ends_on_the_stop_future() {
     let (tx, rx) = tokio::sync::oneshot::channel::<()>();
     let mut f = start(async {
         let _ = rx.await;
-    });
+    })
+    .await;
     f.camera_within(SOON).await.expect("first camera");
     f.complete(0).await;
     f.camera_within(SOON).await.expect("second camera");

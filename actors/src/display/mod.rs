@@ -425,14 +425,8 @@ pub async fn run_display(mb: Mailbox, opts: DisplayOptions) -> Result<DisplaySum
     run_display_until(mb, opts, std::future::pending()).await
 }
 
-/// [`run_display`], which also ends, with the summary of what was shown,
-/// when `stop` completes (Ctrl-C).
-pub async fn run_display_until(
-    mut mb: Mailbox,
-    opts: DisplayOptions,
-    stop: impl Future<Output = ()>,
-) -> Result<DisplaySummary, ActorError> {
-    tokio::pin!(stop);
+/// What a display cannot run with.
+fn check_options(opts: &DisplayOptions) -> Result<(), ActorError> {
     if opts.interactive && (opts.web.is_none() || opts.cameras.is_empty()) {
         return Err(ActorError::Peer {
             actor: ACTOR.into(),
@@ -445,29 +439,65 @@ pub async fn run_display_until(
             message: format!("image of {}x{} is empty", opts.width, opts.height),
         });
     }
-    let output = opts
-        .output
-        .as_deref()
-        .map(|dir| Output::create(dir, opts.save_frames))
-        .transpose()?;
+    Ok(())
+}
+
+/// [`run_display`], which also ends, with the summary of what was shown,
+/// when `stop` completes (Ctrl-C).
+pub async fn run_display_until(
+    mb: Mailbox,
+    opts: DisplayOptions,
+    stop: impl Future<Output = ()>,
+) -> Result<DisplaySummary, ActorError> {
+    check_options(&opts)?;
     let web_err = |addr: std::net::SocketAddr, e| ActorError::Io {
         actor: ACTOR.into(),
         path: format!("http://{addr}/"),
         source: e,
     };
-    let (viewer, moves) = match opts.web {
+    let viewer = match opts.web {
         Some(addr) if opts.interactive => {
             let (v, rx) = WebViewer::start_interactive(addr)
                 .await
                 .map_err(|e| web_err(addr, e))?;
-            (Some(v), Some(rx))
+            Some((v, Some(rx)))
         }
-        Some(addr) => (
-            Some(WebViewer::start(addr).await.map_err(|e| web_err(addr, e))?),
+        Some(addr) => Some((
+            WebViewer::start(addr).await.map_err(|e| web_err(addr, e))?,
             None,
-        ),
+        )),
+        None => None,
+    };
+    run_display_with_viewer(mb, opts, viewer, stop).await
+}
+
+/// [`run_display_until`] serving a web viewer already listening (started
+/// with [`WebViewer::start`], or [`WebViewer::start_interactive`] and its
+/// moves): a caller that lets the system pick the port knows it before the
+/// display runs. `opts.web` is then only checked to be set.
+pub async fn run_display_with_viewer(
+    mut mb: Mailbox,
+    opts: DisplayOptions,
+    viewer: Option<(WebViewer, Option<tokio::sync::mpsc::Receiver<Move>>)>,
+    stop: impl Future<Output = ()>,
+) -> Result<DisplaySummary, ActorError> {
+    tokio::pin!(stop);
+    check_options(&opts)?;
+    let output = opts
+        .output
+        .as_deref()
+        .map(|dir| Output::create(dir, opts.save_frames))
+        .transpose()?;
+    let (viewer, moves) = match viewer {
+        Some((v, moves)) => (Some(v), moves),
         None => (None, None),
     };
+    if opts.interactive && moves.is_none() {
+        return Err(ActorError::Peer {
+            actor: ACTOR.into(),
+            message: "interactive mode needs an interactive web viewer".into(),
+        });
+    }
     let current = opts
         .cameras
         .first()
