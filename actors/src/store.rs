@@ -2,9 +2,10 @@
 //! on disk (one shard of it).
 //!
 //! The database is never loaded whole: each [`FetchVoxel`] reads one blob
-//! (on tokio's blocking pool), at most [`StoreOptions::max_concurrent`] at
-//! once, and the answer is sent from a task of its own so that the mailbox
-//! loop never waits on a slow peer.
+//! (on tokio's blocking pool), at most [`StoreOptions::max_concurrent`]
+//! read or being sent at once (which bounds the store's memory), and the
+//! answer is sent from a task of its own so that the mailbox loop never
+//! waits on a slow peer.
 
 use crate::{ActorError, Shard};
 use dray_protocol::{
@@ -27,7 +28,7 @@ pub struct StoreOptions {
     pub database: PathBuf,
     /// The voxels it serves.
     pub shard: Shard,
-    /// Most blob reads at once.
+    /// Most blobs read or being sent at once.
     pub max_concurrent: usize,
 }
 
@@ -130,16 +131,18 @@ pub async fn run_store(mut mb: Mailbox, opts: StoreOptions) -> Result<StoreSumma
                     let (db, permits, counters, me) =
                         (db.clone(), permits.clone(), counters.clone(), me.clone());
                     tasks.spawn(async move {
-                        let read = match permits.acquire_owned().await {
-                            Ok(permit) => tokio::task::spawn_blocking(move || {
-                                let r = db.read_blob(id);
-                                drop(permit);
-                                r
-                            })
-                            .await
-                            .map_err(|e| format!("read task failed: {e}"))
-                            .and_then(|r| r.map_err(|e| e.to_string())),
-                            Err(_) => Err("the store is stopping".into()),
+                        // The permit is held until the answer is sent, so
+                        // that at most `max_concurrent` blobs are in memory
+                        // at once however slowly peers take them.
+                        let (permit, read) = match permits.acquire_owned().await {
+                            Ok(permit) => (
+                                Some(permit),
+                                tokio::task::spawn_blocking(move || db.read_blob(id))
+                                    .await
+                                    .map_err(|e| format!("read task failed: {e}"))
+                                    .and_then(|r| r.map_err(|e| e.to_string())),
+                            ),
+                            Err(_) => (None, Err("the store is stopping".into())),
                         };
                         let msg = match read {
                             Ok(blob) => {
@@ -164,6 +167,7 @@ pub async fn run_store(mut mb: Mailbox, opts: StoreOptions) -> Result<StoreSumma
                         if let Err(e) = me.send(&from, msg).await {
                             debug!(voxel = id, to = %from, error = %e, "could not answer");
                         }
+                        drop(permit);
                     });
                 }
             }

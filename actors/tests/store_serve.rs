@@ -1,6 +1,7 @@
 //! The VoxelStore actor over the in-process transport: every voxel
 //! byte-identical to the database, refusals that say why, the manifest as
-//! stored, and a missing database named in the error.
+//! stored, a missing database named in the error, and a slow peer cannot
+//! make the store read more than it may hold.
 
 #[path = "client_common/mod.rs"]
 mod common;
@@ -168,4 +169,39 @@ async fn a_missing_database_is_named() {
     let text = err.to_string();
     assert!(text.contains(&missing.display().to_string()), "{text}");
     assert!(text.contains("no such database"), "{text}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_peer_that_does_not_take_its_voxels_holds_at_most_max_concurrent_in_memory() {
+    let db = plant_db(20_000);
+    let n = db.db.manifest.voxels.len() as u32;
+    assert!(n > 8, "{n} voxels: too few for the test");
+    let net = InProcNet::new();
+    let (_store_bus, store) = start_store(&net, 0, db.path.clone(), Shard::ALL);
+    let bus = net.add_node(names::client_node(0), Role::Client).unwrap();
+    // A mailbox of one, never read: the store's answers wait to be sent.
+    let slow = bus.mailbox(name("slow"), 1).unwrap();
+    let to = names::store(0);
+    for id in 0..n {
+        slow.send(&to, Message::FetchVoxel(FetchVoxel { id }))
+            .await
+            .unwrap();
+    }
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let other = bus.mailbox(name("other"), 16).unwrap();
+    other
+        .send(
+            &to,
+            Message::Shutdown(Shutdown {
+                reason: "done".into(),
+            }),
+        )
+        .await
+        .unwrap();
+    let summary = store.await.unwrap().unwrap();
+    // One answer delivered into the mailbox, then two (the store's
+    // max_concurrent) read and waiting to be sent; no more were read (a
+    // store that let go of its permit before sending read all of them).
+    assert!((1..=3).contains(&summary.served), "{summary:?}");
+    drop(slow);
 }
