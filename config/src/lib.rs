@@ -353,7 +353,7 @@ pub struct ClientsConfig {
     /// Miss mode (`on_miss` is accepted too).
     #[serde(default = "default_miss", alias = "on_miss")]
     pub miss_mode: MissMode,
-    /// Most voxel fetches in flight per client.
+    /// Most voxel fetches in flight (or being decoded) per client.
     #[serde(default = "default_inflight")]
     pub max_inflight_fetches: u32,
     /// Tiles a client asks for beyond those its threads are rendering, so

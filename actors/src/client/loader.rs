@@ -1,9 +1,10 @@
 //! The client's voxel loader: render threads ask for voxels through a
 //! channel (each request with a oneshot for the answer); the loader, run
 //! by the client's actor task, sends one [`FetchVoxel`] per voxel however
-//! many packets wait for it, at most `max_inflight` at once (the rest
-//! queue, hints last), decodes and verifies what comes back on tokio's
-//! blocking pool, puts it in the cache and answers every waiter.
+//! many packets wait for it, at most `max_inflight` at once, counting those
+//! still being decoded (the rest queue, hints last), decodes and verifies
+//! what comes back on tokio's blocking pool, puts it in the cache and
+//! answers every waiter.
 //!
 //! Faults: a blob that fails its checksum (or does not decode) is logged
 //! and fetched again; a [`VoxelError`] is retried after a short delay;
@@ -108,10 +109,15 @@ pub(crate) fn decode(id: u32, entry: &VoxelEntry, blob: &[u8]) -> Result<Prepare
             entry.compressed_bytes
         ));
     }
-    if dray_scene::voxel::checksum(blob) != entry.checksum {
+    // The header's checksum must be the manifest's, and decoding checks
+    // the content against the header: one hash of the blob, not two.
+    if dray_scene::voxel::stored_checksum(blob) != Some(entry.checksum) {
         return Err("checksum mismatch".into());
     }
-    let v = Voxel::decode(blob).map_err(|e| format!("cannot decode: {e}"))?;
+    let v = Voxel::decode(blob).map_err(|e| match e {
+        dray_scene::voxel::VoxelError::ChecksumMismatch { .. } => "checksum mismatch".to_string(),
+        e => format!("cannot decode: {e}"),
+    })?;
     Ok(PreparedVoxel::new(id, &v))
 }
 
@@ -301,7 +307,7 @@ impl Loader {
 
     fn leave_flight(&mut self, id: u32) {
         if let Some(p) = self.pending.get(&id) {
-            if matches!(p.state, State::InFlight { .. }) {
+            if matches!(p.state, State::InFlight { .. } | State::Decoding) {
                 self.inflight -= 1;
             }
         }
@@ -317,8 +323,13 @@ impl Loader {
             debug!(voxel = id, %from, "duplicate voxel while decoding");
             return;
         }
-        self.leave_flight(id);
+        // Its slot stays taken while it decodes: `max_inflight` bounds the
+        // blobs in memory, not only those on the wire, so a store faster
+        // than the decoders cannot pile blobs up on the blocking pool.
         if let Some(p) = self.pending.get_mut(&id) {
+            if !matches!(p.state, State::InFlight { .. }) {
+                self.inflight += 1;
+            }
             p.state = State::Decoding;
         }
         let entry = self.manifest.voxels[id as usize];
@@ -340,6 +351,9 @@ impl Loader {
         let Some(mut p) = self.pending.remove(&d.id) else {
             return;
         };
+        if matches!(p.state, State::Decoding) {
+            self.inflight = self.inflight.saturating_sub(1);
+        }
         match d.result {
             Ok(v) => {
                 let (v, freed) = self.cache.insert(Arc::new(v));
@@ -476,5 +490,65 @@ impl Loader {
         self.queue.clear();
         self.hints.clear();
         self.inflight = 0;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::Shard;
+    use dray_scene::db::Database;
+    use dray_scene::generate::{generate_plant, PlantParams};
+    use dray_scene::preprocess::{preprocess, PreprocessOptions};
+    use dray_scene::progress::Progress;
+
+    fn fetched(out: &mut mpsc::UnboundedReceiver<(Address, Message)>) -> Vec<u32> {
+        std::iter::from_fn(|| out.try_recv().ok())
+            .map(|(_, m)| match m {
+                Message::FetchVoxel(f) => f.id,
+                other => panic!("unexpected {other:?}"),
+            })
+            .collect()
+    }
+
+    #[tokio::test]
+    async fn a_voxel_being_decoded_keeps_its_fetch_slot() {
+        let dir = tempfile::tempdir().unwrap();
+        let model = dir.path().join("plant.ply");
+        generate_plant(
+            &PlantParams {
+                triangles: 20_000,
+                seed: 3,
+            },
+            &model,
+            &mut |_| {},
+        )
+        .unwrap();
+        let path = dir.path().join("db");
+        let opts = PreprocessOptions {
+            max_triangles: 512,
+            ..PreprocessOptions::new(vec![model], path.clone())
+        };
+        preprocess(&opts, &Progress::hidden()).unwrap();
+        let db = Database::open(&path).unwrap();
+        assert!(db.manifest.voxels.len() >= 2);
+        let manifest = Arc::new(db.manifest.clone());
+        let cache = Arc::new(VoxelCache::new(manifest.voxels.len(), u64::MAX));
+        let store = crate::names::store(0);
+        let routes = StoreRoutes::new(vec![(Shard::ALL, store.clone())]).unwrap();
+        let (out_tx, mut out) = mpsc::unbounded_channel();
+        let (decoded_tx, mut decoded) = mpsc::unbounded_channel();
+        let mut loader = Loader::new(manifest, cache, routes, 1, out_tx, decoded_tx);
+        let (reply, mut answer) = oneshot::channel();
+        loader.request(LoadRequest { id: 0, reply });
+        let (reply, _answer1) = oneshot::channel();
+        loader.request(LoadRequest { id: 1, reply });
+        assert_eq!(fetched(&mut out), [0], "one slot: one fetch");
+        loader.loaded(store.clone(), 0, db.read_blob(0).unwrap());
+        assert_eq!(fetched(&mut out), [0u32; 0], "sent while voxel 0 decodes");
+        let d = decoded.recv().await.unwrap();
+        loader.decoded(d);
+        assert!(matches!(answer.try_recv(), Ok(Ok(_))));
+        assert_eq!(fetched(&mut out), [1], "the slot is free once decoded");
     }
 }

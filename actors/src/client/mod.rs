@@ -52,7 +52,7 @@ pub struct ClientOptions {
     pub cache_bytes: u64,
     /// Suspend packets on a miss, or block the thread (the baseline).
     pub miss_mode: MissMode,
-    /// Most voxel fetches in flight at once.
+    /// Most voxel fetches in flight or being decoded at once.
     pub max_inflight_fetches: usize,
     /// Tiles asked for beyond one per thread (latency hiding).
     pub tiles_ahead: usize,

@@ -122,25 +122,36 @@ impl Database {
     /// The compressed blob of voxel `id`, checked against the manifest's
     /// length and checksum.
     pub fn read_blob(&self, id: u32) -> Result<Vec<u8>, DbError> {
+        let blob = self.read_unchecked(id)?;
+        if crate::voxel::checksum(&blob) != self.entry(id)?.checksum {
+            return Err(corrupt(id));
+        }
+        Ok(blob)
+    }
+
+    /// The manifest's length of bytes at voxel `id`'s offset.
+    fn read_unchecked(&self, id: u32) -> Result<Vec<u8>, DbError> {
         let entry = self.entry(id)?;
         let mut blob = vec![0u8; entry.compressed_bytes as usize];
         read_exact_at(&self.voxels, &mut blob, entry.offset).map_err(|source| DbError::Io {
             path: self.dir.join(VOXELS_FILE),
             source,
         })?;
-        if crate::voxel::checksum(&blob) != entry.checksum {
-            return Err(DbError::Entry {
-                id,
-                message: "checksum mismatch: the blob on disk is corrupt".into(),
-            });
-        }
         Ok(blob)
     }
 
-    /// Reads and decodes voxel `id`.
+    /// Reads and decodes voxel `id`, checked against the manifest. The
+    /// content is hashed once: decoding checks it against the header's
+    /// checksum, which must be the manifest's.
     pub fn load_voxel(&self, id: u32) -> Result<Voxel, DbError> {
-        let blob = self.read_blob(id)?;
-        Voxel::decode(&blob).map_err(|source| DbError::Voxel { id, source })
+        let blob = self.read_unchecked(id)?;
+        if crate::voxel::stored_checksum(&blob) != Some(self.entry(id)?.checksum) {
+            return Err(corrupt(id));
+        }
+        Voxel::decode(&blob).map_err(|source| match source {
+            crate::voxel::VoxelError::ChecksumMismatch { .. } => corrupt(id),
+            other => DbError::Voxel { id, source: other },
+        })
     }
 
     /// Every voxel of the database, decoded (for tests and small models).
@@ -236,5 +247,13 @@ fn next_up(x: f32) -> f32 {
         })
     } else {
         x
+    }
+}
+
+/// A blob whose bytes do not match the manifest's checksum.
+fn corrupt(id: u32) -> DbError {
+    DbError::Entry {
+        id,
+        message: "checksum mismatch: the blob on disk is corrupt".into(),
     }
 }

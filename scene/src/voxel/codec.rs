@@ -72,6 +72,14 @@ pub fn checksum(blob: &[u8]) -> u64 {
     xxhash_rust::xxh3::xxh3_64(blob.get(CHECKSUM_FROM..).unwrap_or(&[]))
 }
 
+/// The checksum a blob's header claims (offset 16), without hashing:
+/// `None` for a blob too short to have one. Compare it with a manifest's
+/// before [`Voxel::decode`](super::Voxel::decode), which checks the
+/// content against this same field: one hash instead of two.
+pub fn stored_checksum(blob: &[u8]) -> Option<u64> {
+    (blob.len() >= CHECKSUM_FROM).then(|| u64_at(blob, 16))
+}
+
 fn payload_size_of(nv: u64, nt: u64, nn: u64) -> u64 {
     nv * 20 + nt * 16 + nn * 8
 }

@@ -15,7 +15,8 @@ mod normal;
 
 pub use bvh::{BvhNode, BvhStats, MAX_BVH_DEPTH, MAX_LEAF_TRIANGLES};
 pub use codec::{
-    checksum, DEFAULT_ZSTD_LEVEL, FORMAT_VERSION, HEADER_LEN, MAGIC, MAX_VOXEL_RAW_BYTES,
+    checksum, stored_checksum, DEFAULT_ZSTD_LEVEL, FORMAT_VERSION, HEADER_LEN, MAGIC,
+    MAX_VOXEL_RAW_BYTES,
 };
 pub use normal::{decode_normal, encode_normal};
 
