@@ -451,7 +451,9 @@ impl QuicTransport {
         let reason = conn.closed().await;
         writer.abort();
         reader.abort();
-        info!(parent: &span, %reason, "peer disconnected");
+        let path = conn.stats().path;
+        info!(parent: &span, %reason, mtu = path.current_mtu, sent_packets = path.sent_packets,
+            lost_packets = path.lost_packets, rtt = ?path.rtt, "peer disconnected");
         if let Some(bus) = self.bus.upgrade() {
             bus.peer_down(&peer, link_id, reason.to_string());
         }
