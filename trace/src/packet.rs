@@ -266,6 +266,7 @@ impl<const N: usize> Packet<N> {
                     prefetch(p);
                     prefetch(p.wrapping_add(64));
                     prefetch(p.wrapping_add(128));
+                    prefetch(vox.ids.as_ptr().wrapping_add(first) as *const u8);
                 }
             }
             // Test every child box; order the hit ones by where the first
