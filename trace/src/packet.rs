@@ -11,7 +11,8 @@
 //!
 //! [`Traversal`] walks the high-level BSP front to back as a hierarchy of
 //! content boxes, then each voxel's 4-wide BVH, culling per lane against
-//! the lane's nearest hit so far. When it reaches a voxel the source does
+//! the lane's nearest hit so far and the lane's interval inside the
+//! voxel's content box. When it reaches a voxel the source does
 //! not hold, it stops and returns [`Step::Missing`]: its whole state (the
 //! stack and the packet's hits) stays in the `Traversal`, and calling
 //! [`Traversal::run`] again later resumes exactly there. The nearest hit is
@@ -137,7 +138,20 @@ impl<const N: usize> Packet<N> {
     /// (`t0 > t1`) where a ray misses or its current hit is nearer.
     #[inline(always)]
     fn slab(&self, min: [f32; 3], max: [f32; 3]) -> ([f32; N], [f32; N]) {
-        let mut t0 = [self.tmin; N];
+        self.slab_within(min, max, &[self.tmin; N], &[f32::INFINITY; N])
+    }
+
+    /// [`Self::slab`] with each lane's interval also limited to
+    /// `[lo, hi]`.
+    #[inline(always)]
+    fn slab_within(
+        &self,
+        min: [f32; 3],
+        max: [f32; 3],
+        lo: &[f32; N],
+        hi: &[f32; N],
+    ) -> ([f32; N], [f32; N]) {
+        let mut t0 = *lo;
         let mut exit = [f32::INFINITY; N];
         for a in 0..3 {
             // Where every lane agrees on the sign (nearly always), the near
@@ -170,8 +184,9 @@ impl<const N: usize> Packet<N> {
         let mut t1 = self.t;
         for i in 0..N {
             t0[i] -= t0[i].abs() * WIDEN;
-            let hi = exit[i] + exit[i].abs() * WIDEN;
-            t1[i] = if hi < t1[i] { hi } else { t1[i] };
+            let exit = exit[i] + exit[i].abs() * WIDEN;
+            let limit = if hi[i] < t1[i] { hi[i] } else { t1[i] };
+            t1[i] = if exit < limit { exit } else { limit };
         }
         (t0, t1)
     }
@@ -210,9 +225,16 @@ impl<const N: usize> Packet<N> {
         }
     }
 
-    /// Nearest hits (or occlusion) of every lane in one voxel's BVH.
+    /// Nearest hits (or occlusion) of every lane in one voxel's BVH,
+    /// searched only within each lane's interval `seg` (the lane's part of
+    /// the voxel's content box).
     #[inline(always)]
-    fn voxel<S: TriangleTest<N>>(&mut self, shear: &S, vox: &PreparedVoxel) {
+    fn voxel<S: TriangleTest<N>>(
+        &mut self,
+        shear: &S,
+        vox: &PreparedVoxel,
+        seg: (&[f32; N], &[f32; N]),
+    ) {
         if vox.nodes.is_empty() {
             return;
         }
@@ -279,7 +301,7 @@ impl<const N: usize> Packet<N> {
                 }
                 let min = [node.min[0][c], node.min[1][c], node.min[2][c]];
                 let max = [node.max[0][c], node.max[1][c], node.max[2][c]];
-                let (t0, t1) = self.slab(min, max);
+                let (t0, t1) = self.slab_within(min, max, seg.0, seg.1);
                 let mut any = false;
                 for i in 0..N {
                     any |= t0[i] <= t1[i];
@@ -632,9 +654,16 @@ impl<const N: usize> Traversal<N> {
                         return Step::Missing(id);
                     };
                     self.voxels_visited += 1;
+                    // Each lane searches the voxel only where it crosses
+                    // the voxel's content box: a triangle is stored in
+                    // every cell it reaches, and each hit point lies in a
+                    // content box the ray enters, so the parts of
+                    // replicated triangles outside this cell are left to
+                    // their own voxels (the nearest hit is a minimum over
+                    // all of them either way).
                     match &shear {
-                        AnyShear::Uniform(s) => packet.voxel(s, &vox),
-                        AnyShear::Mixed(s) => packet.voxel(s, &vox),
+                        AnyShear::Uniform(s) => packet.voxel(s, &vox, (&t0, &t1)),
+                        AnyShear::Mixed(s) => packet.voxel(s, &vox, (&t0, &t1)),
                     }
                     if packet.any_hit && packet.all_blocked() {
                         self.stack.clear();
