@@ -31,12 +31,15 @@ pub struct TopLevel {
     /// BSP as a hierarchy of these boxes, so rays through the empty part
     /// of a cell skip it.
     pub boxes: Vec<Aabb>,
+    /// Voxels of the model (ids are below this).
+    pub voxel_count: usize,
 }
 
 impl TopLevel {
     pub fn from_manifest(m: &Manifest) -> TopLevel {
         TopLevel {
             boxes: content_boxes(m),
+            voxel_count: m.voxels.len(),
             nodes: m
                 .nodes
                 .iter()

@@ -12,8 +12,9 @@ use crate::render::{FrameStats, Isa, RenderSettings};
 use crate::scene::{PreparedVoxel, TopLevel, VoxelSource};
 use futures::future::BoxFuture;
 use futures::stream::{FuturesUnordered, StreamExt};
-use std::collections::{HashMap, HashSet};
-use std::sync::{Arc, Mutex};
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 /// What a render thread does when a packet needs a voxel that is not
@@ -233,15 +234,21 @@ struct Job<const N: usize> {
 struct JobSource<'a> {
     held: &'a [Arc<PreparedVoxel>],
     loader: &'a dyn VoxelLoader,
-    touched: &'a Mutex<HashSet<u32>>,
+    /// A bit per voxel id: entered by one of the tile's packets. (A set
+    /// under a mutex cost about 1.5 % of the render threads' time: this
+    /// runs at every voxel a packet enters.)
+    touched: &'a [AtomicU64],
 }
 
 impl VoxelSource for JobSource<'_> {
     fn voxel(&self, id: u32) -> Option<Arc<PreparedVoxel>> {
-        self.touched
-            .lock()
-            .unwrap_or_else(|p| p.into_inner())
-            .insert(id);
+        if let Some(word) = self.touched.get(id as usize / 64) {
+            let bit = 1u64 << (id % 64);
+            // Read first: a voxel is entered many times, marked once.
+            if word.load(Ordering::Relaxed) & bit == 0 {
+                word.fetch_or(bit, Ordering::Relaxed);
+            }
+        }
         match self.held.iter().find(|v| v.id == id) {
             Some(v) => Some(v.clone()),
             None => self.loader.voxel(id),
@@ -269,7 +276,9 @@ async fn drive<const N: usize, const BW: u32>(
     };
     let mut stats = TileStats::default();
     let mut fs = FrameStats::default();
-    let touched = Mutex::new(HashSet::new());
+    let touched: Vec<AtomicU64> = (0..ctx.top.voxel_count.div_ceil(64))
+        .map(|_| AtomicU64::new(0))
+        .collect();
     // The blocks not started yet, in rows.
     let blocks_x = rect.width.div_ceil(BW);
     let blocks = blocks_x * rect.height.div_ceil(bh);
@@ -350,9 +359,9 @@ async fn drive<const N: usize, const BW: u32>(
     stats.shadow_rays = fs.shadow_rays;
     stats.reflection_rays = fs.reflection_rays;
     stats.voxels_touched = touched
-        .into_inner()
-        .unwrap_or_else(|p| p.into_inner())
-        .len() as u32;
+        .iter()
+        .map(|w| w.load(Ordering::Relaxed).count_ones())
+        .sum();
     Ok(TileImage {
         rect,
         rgba,
