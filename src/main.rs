@@ -13,7 +13,7 @@ use dray_scene::generate::{generate_plant, PlantParams};
 use dray_scene::preprocess::{self, preprocess, PreprocessOptions};
 use dray_scene::progress::Progress;
 use dray_trace::camera::Camera;
-use dray_trace::render::{render_repeated, Isa, RenderSettings};
+use dray_trace::render::{render_repeated, Isa, Packets, RenderSettings};
 use dray_trace::scene::{RecordingSource, ResidentSource, TopLevel, VoxelSource};
 use glam::Vec3;
 use std::path::{Path, PathBuf};
@@ -228,6 +228,10 @@ struct RenderArgs {
     /// this CPU has).
     #[arg(long, value_parser = parse_isa)]
     isa: Option<Isa>,
+    /// Rays per packet with AVX-512: auto (16 or 32 per tile, from how
+    /// coherent the rays of the tiles before were), 16 or 32.
+    #[arg(long, value_parser = parse_packets, default_value = "auto")]
+    packets: Packets,
     /// Timed passes (after one untimed warm-up); best and median are reported.
     #[arg(long, default_value_t = 1)]
     repeat: usize,
@@ -338,6 +342,15 @@ fn parse_isa(s: &str) -> Result<Isa, String> {
         Ok(isa)
     } else {
         Err(format!("this CPU cannot run the {s} kernel"))
+    }
+}
+
+fn parse_packets(s: &str) -> Result<Packets, String> {
+    match s {
+        "auto" => Ok(Packets::Auto),
+        "16" => Ok(Packets::Narrow),
+        "32" => Ok(Packets::Wide),
+        _ => Err(format!("'{s}' is not auto, 16 or 32")),
     }
 }
 
@@ -761,6 +774,7 @@ fn render(a: &RenderArgs) -> Result<()> {
         reflective: dray_actors::settings::reflect_rule(&a.reflective),
         reflectance: a.reflectance,
         voxel_colors: a.voxel_colors,
+        packets: a.packets,
         ..defaults
     };
     let threads = settings.threads;
@@ -820,6 +834,7 @@ fn render(a: &RenderArgs) -> Result<()> {
             "hit_fraction": hit_fraction,
             "isa": settings.isa.name(),
             "lanes": settings.isa.lanes(),
+            "wide_tiles": s.wide_tiles,
             "seconds": seconds,
             "voxels": db.manifest.voxels.len(),
             "load_seconds": load_seconds,

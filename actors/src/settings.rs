@@ -6,7 +6,7 @@
 //! pixels, bit for bit.
 
 use dray_protocol as wire;
-use dray_trace::render::{Isa, ReflectRule, RenderSettings};
+use dray_trace::render::{Isa, Packets, ReflectRule, RenderSettings};
 use glam::Vec3;
 
 /// The kernel's rule for a wire rule.
@@ -37,6 +37,8 @@ pub fn kernel_settings(
         reflective: reflect_rule(&s.reflective),
         reflectance: s.reflectance,
         voxel_colors: s.voxel_colors,
+        // Each render thread picks per tile (`PacketChooser`).
+        packets: Packets::Auto,
     }
 }
 

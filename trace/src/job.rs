@@ -23,6 +23,10 @@ use crate::tile::Rect;
 use glam::Vec3;
 use std::sync::Arc;
 
+/// One primary packet in this many (a power of two) counts its lanes at
+/// child boxes.
+const LANE_SAMPLE: u32 = 8;
+
 /// What every packet of a frame reads.
 pub(crate) struct Ctx<'a> {
     pub top: &'a TopLevel,
@@ -170,6 +174,8 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
             dirs[i] = ctx.basis.direction(x0 + cx, y0 + cy);
         }
         self.packet = Packet::new(&[ctx.basis.eye; N], &dirs, 0.0, f32::INFINITY);
+        // One primary packet in eight measures its coherence.
+        self.packet.count_lanes = (bx / BW + by / (N as u32 / BW)) & (LANE_SAMPLE - 1) == 0;
         self.cur_dirs = dirs;
         self.trav.reset();
         self.stage = Stage::Primary;
@@ -248,6 +254,8 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
     #[inline(always)]
     fn primary_done(&mut self, ctx: &Ctx, out: &mut Region, stats: &mut FrameStats) {
         let p = &self.packet;
+        stats.child_hits += u64::from(p.child_hits);
+        stats.child_lanes += u64::from(p.child_lanes);
         for i in 0..N {
             if !self.own[i] {
                 continue;

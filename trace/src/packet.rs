@@ -67,6 +67,13 @@ pub struct Packet<const N: usize> {
     /// Any-hit query (shadow rays): a lane stops at its first hit and its
     /// `t` becomes `-inf`.
     pub any_hit: bool,
+    /// Whether to count, at every child box of the voxels' BVHs that some
+    /// lane enters, how many do (`child_hits`, `child_lanes`): how
+    /// coherent the packet is ([`crate::render::PacketChooser`]). Counting
+    /// costs 2–9 %, so only a sample of the packets does it.
+    pub count_lanes: bool,
+    pub child_hits: u32,
+    pub child_lanes: u32,
 }
 
 impl<const N: usize> Packet<N> {
@@ -111,6 +118,9 @@ impl<const N: usize> Packet<N> {
             u: [0.0; N],
             v: [0.0; N],
             any_hit: false,
+            count_lanes: false,
+            child_hits: 0,
+            child_lanes: 0,
         }
     }
 
@@ -308,6 +318,14 @@ impl<const N: usize> Packet<N> {
                 }
                 if !any {
                     continue;
+                }
+                if self.count_lanes {
+                    let mut lanes = 0u32;
+                    for i in 0..N {
+                        lanes += (t0[i] <= t1[i]) as u32;
+                    }
+                    self.child_hits = self.child_hits.wrapping_add(1);
+                    self.child_lanes = self.child_lanes.wrapping_add(lanes);
                 }
                 let key = (min[0] + max[0]) * dir0[0]
                     + (min[1] + max[1]) * dir0[1]

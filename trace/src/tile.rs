@@ -8,7 +8,7 @@
 use crate::camera::Camera;
 use crate::job::{Ctx, PacketJob, Region};
 use crate::packet::Step;
-use crate::render::{FrameStats, Isa, RenderSettings};
+use crate::render::{FrameStats, Isa, Packets, RenderSettings};
 use crate::scene::{PreparedVoxel, TopLevel, VoxelSource};
 use futures::future::BoxFuture;
 use futures::stream::{FuturesUnordered, StreamExt};
@@ -66,6 +66,11 @@ pub struct TileStats {
     pub voxels_touched: u32,
     /// Time spent waiting for loads while no packet of the tile could run.
     pub stall: Duration,
+    /// In the sampled primary packets, the BVH child boxes some lane
+    /// entered and the lanes that entered them (for
+    /// [`crate::render::PacketChooser`]).
+    pub child_hits: u64,
+    pub child_lanes: u64,
 }
 
 /// A rendered tile, rows top to bottom.
@@ -154,6 +159,10 @@ pub async fn render_tile(
     let ctx = Ctx::new(top, camera.basis(), settings, true);
     match isa {
         #[cfg(target_arch = "x86_64")]
+        Isa::Avx512 if settings.packets == Packets::Wide => {
+            drive::<32, 8>(&ctx, loader, rect, mode, step_avx512_wide).await
+        }
+        #[cfg(target_arch = "x86_64")]
         Isa::Avx512 => drive::<16, 4>(&ctx, loader, rect, mode, step_avx512).await,
         #[cfg(target_arch = "x86_64")]
         Isa::Avx2 => drive::<8, 4>(&ctx, loader, rect, mode, step_avx2).await,
@@ -161,8 +170,8 @@ pub async fn render_tile(
     }
 }
 
-type Stepper<const N: usize> =
-    fn(&mut PacketJob<N, 4>, &Ctx, &dyn VoxelSource, &mut Region, &mut FrameStats) -> Step;
+type Stepper<const N: usize, const BW: u32> =
+    fn(&mut PacketJob<N, BW>, &Ctx, &dyn VoxelSource, &mut Region, &mut FrameStats) -> Step;
 
 fn step_portable(
     j: &mut PacketJob<8, 4>,
@@ -220,9 +229,32 @@ fn step_avx512(
     unsafe { inner(j, c, s, r, st) }
 }
 
+#[cfg(target_arch = "x86_64")]
+fn step_avx512_wide(
+    j: &mut PacketJob<32, 8>,
+    c: &Ctx,
+    s: &dyn VoxelSource,
+    r: &mut Region,
+    st: &mut FrameStats,
+) -> Step {
+    #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
+    unsafe fn inner(
+        j: &mut PacketJob<32, 8>,
+        c: &Ctx,
+        s: &dyn VoxelSource,
+        r: &mut Region,
+        st: &mut FrameStats,
+    ) -> Step {
+        j.step(c, s, r, st)
+    }
+    // SAFETY: `render_tile` picks this only where `Isa::supported` says
+    // the CPU has AVX-512.
+    unsafe { inner(j, c, s, r, st) }
+}
+
 /// A packet and the voxels it waited for.
-struct Job<const N: usize> {
-    job: PacketJob<N, 4>,
+struct Job<const N: usize, const BW: u32> {
+    job: PacketJob<N, BW>,
     /// What `load` returned for this packet: looked up before the loader,
     /// so a voxel the cache evicted meanwhile is still found, and dropped
     /// when the packet is done.
@@ -261,7 +293,7 @@ async fn drive<const N: usize, const BW: u32>(
     loader: &dyn VoxelLoader,
     rect: Rect,
     mode: MissMode,
-    step: Stepper<N>,
+    step: Stepper<N, BW>,
 ) -> Result<TileImage, LoadError> {
     let bh = N as u32 / BW;
     let n = (rect.width * rect.height) as usize;
@@ -285,9 +317,9 @@ async fn drive<const N: usize, const BW: u32>(
     let mut next_block = 0;
     // Resumable jobs, finished ones kept for reuse, packets waiting for
     // each voxel, and the requests in flight.
-    let mut ready: Vec<Box<Job<N>>> = Vec::new();
-    let mut spare: Vec<Box<Job<N>>> = Vec::new();
-    let mut waiting: HashMap<u32, Vec<Box<Job<N>>>> = HashMap::new();
+    let mut ready: Vec<Box<Job<N, BW>>> = Vec::new();
+    let mut spare: Vec<Box<Job<N, BW>>> = Vec::new();
+    let mut waiting: HashMap<u32, Vec<Box<Job<N, BW>>>> = HashMap::new();
     let mut inflight = FuturesUnordered::new();
     loop {
         let mut job = match ready.pop() {
@@ -358,6 +390,8 @@ async fn drive<const N: usize, const BW: u32>(
     stats.primary_rays = fs.primary_rays;
     stats.shadow_rays = fs.shadow_rays;
     stats.reflection_rays = fs.reflection_rays;
+    stats.child_hits = fs.child_hits;
+    stats.child_lanes = fs.child_lanes;
     stats.voxels_touched = touched
         .iter()
         .map(|w| w.load(Ordering::Relaxed).count_ones())

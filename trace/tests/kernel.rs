@@ -8,7 +8,7 @@ use dray_scene::geometry::{closer, intersect_triangle, Hit, Ray};
 use dray_scene::rng::Rng;
 use dray_trace::camera::Camera;
 use dray_trace::packet::{Packet, Step, Traversal};
-use dray_trace::render::{render, Frame, Isa};
+use dray_trace::render::{render, Frame, Isa, Packets, RenderSettings};
 use dray_trace::scene::{PreparedVoxel, ResidentSource, VoxelSource};
 use glam::Vec3;
 use std::collections::{HashSet, VecDeque};
@@ -46,6 +46,26 @@ fn check_against_brute_force(m: &Model, camera: &Camera, frame: &Frame, what: &s
         hits > pixels / 10,
         "{what}: only {hits} of {pixels} pixels hit"
     );
+}
+
+#[test]
+fn packets_of_every_width_equal_brute_force() {
+    // 16 and 32 lanes where the CPU has AVX-512 (8 elsewhere), and the
+    // per-tile choice between them.
+    let m = plant(20_000);
+    for packets in [Packets::Narrow, Packets::Wide, Packets::Auto] {
+        for (k, cam) in cameras(&m, 96, 72).iter().enumerate() {
+            let s = RenderSettings {
+                packets,
+                ..settings(Isa::detect(), &m)
+            };
+            let frame = render(&m.top, &m.source, cam, &s).unwrap();
+            check_against_brute_force(&m, cam, &frame, &format!("{packets:?} camera {k}"));
+            if packets == Packets::Wide && Isa::detect() == Isa::Avx512 {
+                assert!(frame.stats.wide_tiles > 0, "no tile was traced wide");
+            }
+        }
+    }
 }
 
 #[test]

@@ -7,7 +7,7 @@ mod common;
 use common::{cameras, isas, plant, settings, shared_model, Model};
 use dray_scene::rng::Rng;
 use dray_trace::camera::Camera;
-use dray_trace::render::{render, Frame, Isa, ReflectRule, RenderSettings};
+use dray_trace::render::{render, Frame, Isa, Packets, ReflectRule, RenderSettings};
 use dray_trace::scene::{PreparedVoxel, ResidentSource, VoxelSource};
 use dray_trace::tile::{render_tile, LoadError, MissMode, Rect, TileImage, VoxelLoader};
 use futures::future::BoxFuture;
@@ -355,6 +355,39 @@ async fn tiny_cache_random_arrivals_give_identical_tiles() {
         total_misses > 500,
         "only {total_misses} misses: the test is too easy"
     );
+}
+
+/// Tiles of 32-lane packets, with voxels arriving in random order, give
+/// the pixels of 16-lane packets (shaded, shadows, reflections).
+#[tokio::test(start_paused = true)]
+async fn wide_packet_tiles_equal_the_narrow_frame() {
+    let m = plant(20_000);
+    let narrow = RenderSettings {
+        packets: Packets::Narrow,
+        ..shaded(Isa::detect(), &m)
+    };
+    let wide = RenderSettings {
+        packets: Packets::Wide,
+        ..narrow.clone()
+    };
+    for (k, cam) in cameras(&m, 64, 48).iter().enumerate() {
+        let frame = reference(&m, cam, &narrow);
+        for (g, rects) in rect_grids(cam) {
+            let loader = TinyCache::new(&m.source, 3, 7 + k as u64);
+            let what = format!("camera {k} wide tiles {g}");
+            check_rects(
+                &m,
+                &loader,
+                cam,
+                &wide,
+                &frame,
+                &rects,
+                MissMode::Suspend,
+                &what,
+            )
+            .await;
+        }
+    }
 }
 
 /// Tile statistics: rays counted once per pixel, one request per voxel

@@ -7,7 +7,7 @@
 use super::loader::{Shared, TileLoader};
 use dray_protocol::TileRect;
 use dray_trace::camera::Camera;
-use dray_trace::render::RenderSettings;
+use dray_trace::render::{PacketChooser, Packets, RenderSettings};
 use dray_trace::scene::TopLevel;
 use dray_trace::tile::{render_tile, LoadError, MissMode, Rect, TileImage};
 use futures::future::{select, Either};
@@ -55,7 +55,12 @@ pub(crate) struct WorkerCtx {
     pub results: mpsc::UnboundedSender<TileResult>,
 }
 
-async fn run_job(ctx: &WorkerCtx, index: usize, job: TileJob) -> TileResult {
+async fn run_job(
+    ctx: &WorkerCtx,
+    index: usize,
+    job: TileJob,
+    chooser: Rc<Cell<PacketChooser>>,
+) -> TileResult {
     let loader = TileLoader {
         shared: &ctx.shared,
         bytes: AtomicU64::new(0),
@@ -66,15 +71,21 @@ async fn run_job(ctx: &WorkerCtx, index: usize, job: TileJob) -> TileResult {
         width: job.tile.w,
         height: job.tile.h,
     };
-    let image = render_tile(
-        &ctx.top,
-        &loader,
-        &job.camera,
-        rect,
-        &job.settings,
-        ctx.mode,
-    )
-    .await;
+    // The packet width this thread's earlier tiles suggest (as `render`
+    // chooses it), unless the settings fix it.
+    let settings = match job.settings.packets {
+        Packets::Auto => Arc::new(RenderSettings {
+            packets: chooser.get().next(),
+            ..(*job.settings).clone()
+        }),
+        _ => job.settings.clone(),
+    };
+    let image = render_tile(&ctx.top, &loader, &job.camera, rect, &settings, ctx.mode).await;
+    if let Ok(image) = &image {
+        let mut c = chooser.get();
+        c.learn(image.stats.child_hits, image.stats.child_lanes);
+        chooser.set(c);
+    }
     TileResult {
         thread: index,
         job,
@@ -127,8 +138,9 @@ pub(crate) fn render_thread(
         let mut charged = std::time::Duration::ZERO;
         let traced = Rc::new(Cell::new(std::time::Duration::ZERO));
         let (mut traced_total, mut idle) = (std::time::Duration::ZERO, std::time::Duration::ZERO);
+        let chooser = Rc::new(Cell::new(PacketChooser::new(Packets::Auto)));
         let start_job = |job| Timed {
-            inner: Box::pin(run_job(ctx, index, job)),
+            inner: Box::pin(run_job(ctx, index, job, chooser.clone())),
             traced: traced.clone(),
         };
         loop {
