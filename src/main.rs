@@ -801,11 +801,13 @@ fn render(a: &RenderArgs) -> Result<()> {
         .then(|| s.shadow_rays as f64 / (s.shadow_seconds / threads as f64) / 1e6);
     let hit_fraction = s.hits as f64 / s.primary_rays.max(1) as f64;
     println!(
-        "{}x{} on {threads} thread(s), {} packets of {}: {:.2} Mrays/s best, {:.2} median ({rays} rays{}), {:.1} % hit, {:.2} voxels per packet; loaded {} voxels ({} MiB) in {load_seconds:.2} s",
+        "{}x{} on {threads} thread(s), {} packets of {} rays ({} tiles of {} rays): {:.2} Mrays/s best, {:.2} median ({rays} rays{}), {:.1} % hit, {:.2} voxels entered per {} primary rays; loaded {} voxels ({} MiB) in {load_seconds:.2} s",
         frame.width,
         frame.height,
         settings.isa.name(),
         settings.isa.lanes(),
+        s.wide_tiles,
+        2 * settings.isa.lanes(),
         best,
         median,
         if a.shadows || a.reflections > 0 {
@@ -815,6 +817,7 @@ fn render(a: &RenderArgs) -> Result<()> {
         },
         100.0 * hit_fraction,
         s.voxels_visited as f64 / (s.primary_rays as f64 / settings.isa.lanes() as f64),
+        settings.isa.lanes(),
         db.manifest.voxels.len(),
         source.bytes() >> 20
     );
