@@ -801,13 +801,16 @@ fn render(a: &RenderArgs) -> Result<()> {
         .then(|| s.shadow_rays as f64 / (s.shadow_seconds / threads as f64) / 1e6);
     let hit_fraction = s.hits as f64 / s.primary_rays.max(1) as f64;
     println!(
-        "{}x{} on {threads} thread(s), {} packets of {} rays ({} tiles of {} rays): {:.2} Mrays/s best, {:.2} median ({rays} rays{}), {:.1} % hit, {:.2} voxels entered per {} primary rays; loaded {} voxels ({} MiB) in {load_seconds:.2} s",
+        "{}x{} on {threads} thread(s), {} packets of {} rays{}: {:.2} Mrays/s best, {:.2} median ({rays} rays{}), {:.1} % hit, {:.2} voxels entered per {} primary rays; loaded {} voxels ({} MiB) in {load_seconds:.2} s",
         frame.width,
         frame.height,
         settings.isa.name(),
         settings.isa.lanes(),
-        s.wide_tiles,
-        2 * settings.isa.lanes(),
+        if settings.isa == Isa::Avx512 {
+            format!(" (32 in {} tiles)", s.wide_tiles)
+        } else {
+            String::new()
+        },
         best,
         median,
         if a.shadows || a.reflections > 0 {

@@ -24,6 +24,15 @@ async fn next(mb: &mut dray_runtime::Mailbox) -> Message {
         .1
 }
 
+/// Sends a fetch of each of voxels `0..n` to the store at `to`.
+async fn ask_for_every_voxel(mb: &dray_runtime::Mailbox, to: &dray_protocol::Address, n: u32) {
+    for id in 0..n {
+        mb.send(to, Message::FetchVoxel(FetchVoxel { id }))
+            .await
+            .unwrap();
+    }
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn serves_every_voxel_as_stored_and_refuses_unknown_ids() {
     let db = plant_db(20_000);
@@ -35,11 +44,7 @@ async fn serves_every_voxel_as_stored_and_refuses_unknown_ids() {
     let mut mb = bus.mailbox(name("client"), 4096).unwrap();
     let to = names::store(0);
     // Every voxel at once: the store reads at most two at a time.
-    for id in 0..n {
-        mb.send(&to, Message::FetchVoxel(FetchVoxel { id }))
-            .await
-            .unwrap();
-    }
+    ask_for_every_voxel(&mb, &to, n).await;
     let mut got = HashMap::new();
     while got.len() < n as usize {
         match next(&mut mb).await {
@@ -110,11 +115,7 @@ async fn a_shard_serves_its_voxels_only() {
     let bus = net.add_node(names::client_node(0), Role::Client).unwrap();
     let mut mb = bus.mailbox(name("client"), 1024).unwrap();
     let to = names::store(1);
-    for id in 0..n {
-        mb.send(&to, Message::FetchVoxel(FetchVoxel { id }))
-            .await
-            .unwrap();
-    }
+    ask_for_every_voxel(&mb, &to, n).await;
     for _ in 0..n {
         match next(&mut mb).await {
             Message::VoxelLoaded(v) => {
@@ -182,11 +183,7 @@ async fn a_peer_that_does_not_take_its_voxels_holds_at_most_max_concurrent_in_me
     // A mailbox of one, never read: the store's answers wait to be sent.
     let slow = bus.mailbox(name("slow"), 1).unwrap();
     let to = names::store(0);
-    for id in 0..n {
-        slow.send(&to, Message::FetchVoxel(FetchVoxel { id }))
-            .await
-            .unwrap();
-    }
+    ask_for_every_voxel(&slow, &to, n).await;
     tokio::time::sleep(Duration::from_millis(500)).await;
     let other = bus.mailbox(name("other"), 16).unwrap();
     other

@@ -381,10 +381,13 @@ fn render_tile(shared: &Shared, x0: u32, y0: u32, wide: bool) -> Result<TileOut,
         #[cfg(target_arch = "x86_64")]
         // SAFETY: `render` keeps an ISA only where `Isa::supported` says
         // this CPU has its features.
-        Isa::Avx512 if wide => unsafe { tile_avx512_wide(shared, x0, y0) },
+        Isa::Avx512 if wide => unsafe { tile_avx512::<32, 8>(shared, x0, y0) }.map(|mut out| {
+            out.stats.wide_tiles = 1;
+            out
+        }),
         #[cfg(target_arch = "x86_64")]
         // SAFETY: as above.
-        Isa::Avx512 => unsafe { tile_avx512(shared, x0, y0) },
+        Isa::Avx512 => unsafe { tile_avx512::<16, 4>(shared, x0, y0) },
         #[cfg(target_arch = "x86_64")]
         // SAFETY: as above.
         Isa::Avx2 => unsafe { tile_avx2(shared, x0, y0) },
@@ -392,18 +395,16 @@ fn render_tile(shared: &Shared, x0: u32, y0: u32, wide: bool) -> Result<TileOut,
     }
 }
 
+/// AVX-512 at either packet width: 16 lanes in 4-pixel-wide blocks, or 32
+/// in 8-pixel-wide ones.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
-unsafe fn tile_avx512(shared: &Shared, x0: u32, y0: u32) -> Result<TileOut, u32> {
-    tile::<16, 4>(shared, x0, y0)
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f,avx512vl,avx512bw,avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
-unsafe fn tile_avx512_wide(shared: &Shared, x0: u32, y0: u32) -> Result<TileOut, u32> {
-    let mut out = tile::<32, 8>(shared, x0, y0)?;
-    out.stats.wide_tiles = 1;
-    Ok(out)
+unsafe fn tile_avx512<const N: usize, const BW: u32>(
+    shared: &Shared,
+    x0: u32,
+    y0: u32,
+) -> Result<TileOut, u32> {
+    tile::<N, BW>(shared, x0, y0)
 }
 
 #[cfg(target_arch = "x86_64")]

@@ -160,7 +160,7 @@ pub async fn render_tile(
     match isa {
         #[cfg(target_arch = "x86_64")]
         Isa::Avx512 if settings.packets == Packets::Wide => {
-            drive::<32, 8>(&ctx, loader, rect, mode, step_avx512_wide).await
+            drive::<32, 8>(&ctx, loader, rect, mode, step_avx512).await
         }
         #[cfg(target_arch = "x86_64")]
         Isa::Avx512 => drive::<16, 4>(&ctx, loader, rect, mode, step_avx512).await,
@@ -206,40 +206,19 @@ fn step_avx2(
     unsafe { inner(j, c, s, r, st) }
 }
 
+/// AVX-512 at either packet width: 16 lanes in 4-pixel-wide blocks, or 32
+/// in 8-pixel-wide ones.
 #[cfg(target_arch = "x86_64")]
-fn step_avx512(
-    j: &mut PacketJob<16, 4>,
+fn step_avx512<const N: usize, const BW: u32>(
+    j: &mut PacketJob<N, BW>,
     c: &Ctx,
     s: &dyn VoxelSource,
     r: &mut Region,
     st: &mut FrameStats,
 ) -> Step {
     #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
-    unsafe fn inner(
-        j: &mut PacketJob<16, 4>,
-        c: &Ctx,
-        s: &dyn VoxelSource,
-        r: &mut Region,
-        st: &mut FrameStats,
-    ) -> Step {
-        j.step(c, s, r, st)
-    }
-    // SAFETY: `render_tile` picks this only where `Isa::supported` says
-    // the CPU has AVX-512.
-    unsafe { inner(j, c, s, r, st) }
-}
-
-#[cfg(target_arch = "x86_64")]
-fn step_avx512_wide(
-    j: &mut PacketJob<32, 8>,
-    c: &Ctx,
-    s: &dyn VoxelSource,
-    r: &mut Region,
-    st: &mut FrameStats,
-) -> Step {
-    #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
-    unsafe fn inner(
-        j: &mut PacketJob<32, 8>,
+    unsafe fn inner<const N: usize, const BW: u32>(
+        j: &mut PacketJob<N, BW>,
         c: &Ctx,
         s: &dyn VoxelSource,
         r: &mut Region,

@@ -73,12 +73,12 @@ async fn run_job(
     };
     // The packet width this thread's earlier tiles suggest (as `render`
     // chooses it), unless the settings fix it.
-    let settings = match job.settings.packets {
-        Packets::Auto => Arc::new(RenderSettings {
-            packets: chooser.get().next(),
-            ..(*job.settings).clone()
-        }),
-        _ => job.settings.clone(),
+    let settings = RenderSettings {
+        packets: match job.settings.packets {
+            Packets::Auto => chooser.get().next(),
+            fixed => fixed,
+        },
+        ..(*job.settings).clone()
     };
     let image = render_tile(&ctx.top, &loader, &job.camera, rect, &settings, ctx.mode).await;
     if let Ok(image) = &image {

@@ -96,7 +96,7 @@ struct Frame {
     grid: TileGrid,
     tiles: Vec<Tile>,
     /// Affinity: per previous owner, the fresh tiles, `pop()` giving the
-    /// next one (group 0 stays empty: see `unowned`).
+    /// next one.
     groups: Vec<Vec<usize>>,
     /// Affinity: the fresh tiles nobody owned, by curve position.
     unowned: BTreeMap<u32, usize>,
@@ -238,7 +238,7 @@ impl Frame {
             ),
         };
         let costs = prev.filter(|p| p.grid == self.grid).map(|p| &p.costs);
-        self.groups = vec![Vec::new()];
+        self.groups.clear();
         self.group_of.clear();
         self.region.clear();
         for i in 0..self.tiles.len() {
@@ -256,20 +256,15 @@ impl Frame {
         }
         self.unowned.clear();
         for i in fresh {
-            let g = match &self.affine[i] {
-                None => {
-                    self.unowned.insert(self.ranks[i], i);
-                    continue;
-                }
-                Some(owner) => {
-                    let next = self.groups.len();
-                    let g = *self.group_of.entry(owner.clone()).or_insert(next);
-                    if g == next {
-                        self.groups.push(Vec::new());
-                    }
-                    g
-                }
+            let Some(owner) = &self.affine[i] else {
+                self.unowned.insert(self.ranks[i], i);
+                continue;
             };
+            let next = self.groups.len();
+            let g = *self.group_of.entry(owner.clone()).or_insert(next);
+            if g == next {
+                self.groups.push(Vec::new());
+            }
             self.groups[g].push(i);
         }
         for q in &mut self.groups {
@@ -386,7 +381,7 @@ impl Frame {
         } else {
             BTreeSet::new()
         };
-        let (g, k) = (1..self.groups.len())
+        let (g, k) = (0..self.groups.len())
             .flat_map(|g| (0..self.groups[g].len()).map(move |k| (g, k)))
             .min_by_key(|&(g, k)| {
                 let i = self.groups[g][k];
