@@ -34,6 +34,7 @@ fn options(cache_bytes: u64, mode: MissMode, stores: usize) -> ClientOptions {
         miss_mode: mode,
         max_inflight_fetches: 4,
         tiles_ahead: TILES_AHEAD,
+        preload: false,
         isa: Isa::detect(),
         stores: routes(stores),
         scheduler: names::scheduler(),
@@ -43,6 +44,12 @@ fn options(cache_bytes: u64, mode: MissMode, stores: usize) -> ClientOptions {
 
 /// One client renders the test frame from one store.
 async fn run(db: &Db, cache_bytes: u64, mode: MissMode, hint: bool, outage: bool) -> Run {
+    run_with(db, options(cache_bytes, mode, 1), hint, outage).await
+}
+
+/// The same with any client options.
+async fn run_with(db: &Db, opts: ClientOptions, hint: bool, outage: bool) -> Run {
+    let capacity = opts.threads + opts.tiles_ahead;
     let net = InProcNet::new();
     let (_store_bus, store) = start_store(&net, 0, db.path.clone(), Shard::ALL);
     let mut fe = FakeFrontEnd::new(&net);
@@ -54,7 +61,7 @@ async fn run(db: &Db, cache_bytes: u64, mode: MissMode, hint: bool, outage: bool
     net.set_shape(&names::client_node(0), &names::store_node(0), shape)
         .unwrap();
     let mb = client_bus.mailbox(name(names::CLIENT), 1024).unwrap();
-    let client = tokio::spawn(run_client(mb, options(cache_bytes, mode, 1)));
+    let client = tokio::spawn(run_client(mb, opts));
     let cut = outage.then(|| {
         let net = net.clone();
         tokio::spawn(async move {
@@ -93,7 +100,7 @@ async fn run(db: &Db, cache_bytes: u64, mode: MissMode, hint: bool, outage: bool
     let served = store.await.unwrap().unwrap();
     assert!(served.served >= summary.fetched);
     assert!(
-        out.max_outstanding <= THREADS + TILES_AHEAD,
+        out.max_outstanding <= capacity,
         "the client asked for {} tiles at once",
         out.max_outstanding
     );
@@ -127,6 +134,63 @@ async fn suspend_mode_with_a_big_cache_fetches_each_voxel_once() {
     assert_eq!(s.refetched, 0, "{s:?}");
     assert!(s.fetched > 0 && s.fetched <= db.db.manifest.voxels.len() as u64);
     assert!(s.peak_cache_bytes > 0);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn tiles_sent_in_batches_equal_the_reference() {
+    // 8 tiles ahead: finished tiles leave 4 at a time (and the frame's
+    // last ones at once), and the client asks for 4 tiles at a time.
+    let db = plant_db(20_000);
+    let want = reference(&db.db);
+    let budget = 3 * mean_voxel_bytes(&db.db);
+    let opts = ClientOptions {
+        tiles_ahead: 8,
+        ..options(budget, MissMode::Suspend, 1)
+    };
+    let r = run_with(&db, opts, false, false).await;
+    assert_same(&r.out, &want, "batches, small cache");
+    assert!(
+        r.out.max_outstanding > THREADS + TILES_AHEAD,
+        "tiles were asked ahead"
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_preloaded_client_fetches_nothing_for_its_tiles() {
+    let db = plant_db(20_000);
+    let want = reference(&db.db);
+    let voxels = db.db.manifest.voxels.len() as u64;
+    let opts = ClientOptions {
+        preload: true,
+        ..options(1 << 30, MissMode::Suspend, 1)
+    };
+    let r = run_with(&db, opts, false, false).await;
+    assert_same(&r.out, &want, "preloaded");
+    let s = &r.summary;
+    assert_eq!((s.preloaded, s.fetched), (voxels, voxels), "{s:?}");
+    assert_eq!(s.misses, 0, "{s:?}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_preload_stops_at_the_cache_budget() {
+    let db = plant_db(20_000);
+    let want = reference(&db.db);
+    let budget = 3 * mean_voxel_bytes(&db.db);
+    let opts = ClientOptions {
+        preload: true,
+        ..options(budget, MissMode::Suspend, 1)
+    };
+    let r = run_with(&db, opts, false, false).await;
+    assert_same(&r.out, &want, "preload into a small cache");
+    let s = &r.summary;
+    // The budget is counted in decoded sizes, which are below the
+    // prepared sizes the cache counts: a few more than 3 may be asked for.
+    let voxels = db.db.manifest.voxels.len() as u64;
+    assert!(
+        s.preloaded > 0 && s.preloaded < voxels / 4,
+        "{s:?} of {voxels} voxels"
+    );
+    assert!(s.misses > 0, "{s:?}");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -360,6 +360,11 @@ pub struct ClientsConfig {
     /// it never idles waiting for the scheduler.
     #[serde(default = "default_tiles_ahead")]
     pub tiles_ahead: u32,
+    /// Fetch every voxel that fits the cache before asking for tiles: warm
+    /// caches from the first frame, for a model that fits the clients'
+    /// memory (the rest, if any, is fetched on demand).
+    #[serde(default)]
+    pub preload: bool,
     /// Host the clients bind (they dial out; the port is picked).
     #[serde(default = "default_bind")]
     pub bind: String,

@@ -159,7 +159,12 @@ impl VoxelCache {
         freed
     }
 
-    /// Bytes of the resident voxels.
+    /// The byte budget.
+    pub fn budget(&self) -> u64 {
+        self.budget
+    }
+
+    /// Bytes of the voxels held now.
     pub fn resident_bytes(&self) -> u64 {
         self.resident.load(Ordering::Relaxed)
     }

@@ -150,6 +150,7 @@ pub(crate) struct LoaderStats {
     pub bytes_fetched: u64,
     pub refetched: u64,
     pub prefetched: u64,
+    pub preloaded: u64,
     pub retries: u64,
 }
 
@@ -163,6 +164,11 @@ pub(crate) struct Loader {
     pending: HashMap<u32, Pending>,
     queue: VecDeque<u32>,
     hints: VecDeque<u32>,
+    /// Voxels still to preload (every voxel, in id order, until the cache
+    /// is full), fetched when no request waits, before any hint.
+    preload: VecDeque<u32>,
+    /// Decoded bytes (the manifest's sizes) of the preloads sent so far.
+    preload_planned: u64,
     ever_loaded: Vec<bool>,
     /// Where FetchVoxel messages go out (a task that sends them in order).
     out: mpsc::UnboundedSender<(Address, Message)>,
@@ -197,6 +203,8 @@ impl Loader {
             pending: HashMap::new(),
             queue: VecDeque::new(),
             hints: VecDeque::new(),
+            preload: VecDeque::new(),
+            preload_planned: 0,
             ever_loaded: vec![false; n],
             out,
             decoded,
@@ -257,8 +265,50 @@ impl Loader {
         self.pump();
     }
 
-    /// Sends queued fetches while slots are free: requests first, hints
-    /// when nothing else waits.
+    /// Fetches every voxel of the model, in id order, while the cache has
+    /// room for it (by the manifest's decoded sizes, and by what the cache
+    /// holds): warm caches before the first tile, for a model that fits.
+    /// Requests from packets go first.
+    pub fn preload(&mut self) {
+        self.preload = (0..self.manifest.voxels.len() as u32).collect();
+        self.preload_planned = 0;
+        self.pump();
+    }
+
+    /// Whether a preload is still going on (queued, in flight or being
+    /// decoded).
+    pub fn preloading(&self) -> bool {
+        !self.preload.is_empty() || self.pending.values().any(|p| p.prefetch)
+    }
+
+    /// The next voxel to preload, if the cache has room for it.
+    fn next_preload(&mut self) -> Option<u32> {
+        while let Some(&id) = self.preload.front() {
+            let size = self.manifest.voxels[id as usize].raw_bytes;
+            let planned = self.preload_planned + size;
+            if planned > self.cache.budget()
+                || self.cache.resident_bytes() + size > self.cache.budget()
+            {
+                debug!(
+                    left = self.preload.len(),
+                    "the cache is full: the other voxels are fetched on demand"
+                );
+                self.preload.clear();
+                return None;
+            }
+            self.preload.pop_front();
+            if self.pending.contains_key(&id) || self.cache.contains(id) {
+                continue;
+            }
+            self.preload_planned = planned;
+            self.stats.preloaded += 1;
+            return Some(id);
+        }
+        None
+    }
+
+    /// Sends queued fetches while slots are free: requests first, then
+    /// the preload, hints when nothing else waits.
     fn pump(&mut self) {
         while self.inflight < self.max_inflight {
             if let Some(id) = self.queue.pop_front() {
@@ -267,12 +317,19 @@ impl Loader {
                 }
                 continue;
             }
-            let Some(id) = self.hints.pop_front() else {
-                break;
+            let id = match self.next_preload() {
+                Some(id) => id,
+                None => {
+                    let Some(id) = self.hints.pop_front() else {
+                        break;
+                    };
+                    if self.pending.contains_key(&id) || self.cache.contains(id) {
+                        continue;
+                    }
+                    self.stats.prefetched += 1;
+                    id
+                }
             };
-            if self.pending.contains_key(&id) || self.cache.contains(id) {
-                continue;
-            }
             self.pending.insert(
                 id,
                 Pending {
@@ -283,7 +340,6 @@ impl Loader {
                     prefetch: true,
                 },
             );
-            self.stats.prefetched += 1;
             self.send(id);
         }
     }
@@ -489,6 +545,7 @@ impl Loader {
         }
         self.queue.clear();
         self.hints.clear();
+        self.preload.clear();
         self.inflight = 0;
     }
 }

@@ -3,15 +3,17 @@
 //! At start the client asks a store for the manifest (the high-level BSP
 //! and the voxel table), then asks the scheduler for `threads +
 //! tiles_ahead` tiles. Each [`AssignTile`] goes to the least busy render
-//! thread ([`worker`]); each finished tile goes to the display
-//! ([`TileDone`]), which reports it to the scheduler, and the scheduler is
-//! asked for one more tile. Voxels come through the [`loader`] into the
+//! thread ([`worker`]); finished tiles go to the display ([`TileDone`]),
+//! which reports them to the scheduler, and the scheduler is asked for as
+//! many more tiles: one at a time, or in batches when several tiles are
+//! asked for ahead ([`batch`]). Voxels come through the [`loader`] into the
 //! [`cache`], shared by every render thread.
 //!
 //! The actor task itself only does bookkeeping: messages go out through
 //! sender tasks, blobs are decoded on tokio's blocking pool, and tracing
 //! runs on the render threads, so the mailbox is always served promptly.
 
+mod batch;
 pub mod cache;
 mod loader;
 mod worker;
@@ -21,6 +23,7 @@ pub use loader::{FETCH_TIMEOUT, MAX_TRIES, RETRY_DELAY};
 use crate::names::StoreRoutes;
 use crate::settings::{kernel_camera, kernel_settings};
 use crate::ActorError;
+use batch::TileBatch;
 use cache::VoxelCache;
 use dray_protocol::{
     Address, AssignTile, Blob, BoundedVec, FetchManifest, Message, PackedF32, PackedU32,
@@ -56,6 +59,8 @@ pub struct ClientOptions {
     pub max_inflight_fetches: usize,
     /// Tiles asked for beyond one per thread (latency hiding).
     pub tiles_ahead: usize,
+    /// Fetch every voxel that fits the cache before asking for tiles.
+    pub preload: bool,
     /// The tracing kernel.
     pub isa: dray_trace::render::Isa,
     /// Where voxels come from.
@@ -87,6 +92,8 @@ pub struct ClientSummary {
     pub peak_cache_bytes: u64,
     /// Voxels fetched because of a prefetch hint.
     pub prefetched: u64,
+    /// Voxels fetched by the preload, before the first tile.
+    pub preloaded: u64,
 }
 
 /// Sends messages in order from a task of their own, so that the actor
@@ -221,8 +228,8 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
 
     let me = mb.handle();
     let fetches = sender(me.clone(), "voxel fetch");
-    // A finished tile's pixels, its report and the request for the next
-    // tile go out in this order in one queue: the scheduler counts a tile
+    // Finished tiles' pixels and the request for as many new tiles go out
+    // in this order in one queue, a batch at a time ([`batch`]): the scheduler counts a tile
     // done only once its pixels have left (a client that dies with pixels
     // still queued has the tile reassigned instead of lost), and it never
     // sees more tiles asked for than the client holds. A display slow to
@@ -275,19 +282,39 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
     drop((shared, done_tx));
     let capacity = threads + opts.tiles_ahead;
     let mut busy = vec![0usize; threads];
+    // Tiles assigned whose slots are not asked for again yet (being
+    // rendered, queued, or finished and held for a batch).
     let mut outstanding = 0usize;
+    let mut batch = TileBatch::new(opts.tiles_ahead);
     let mut scheduler_up = true;
-    let _ = results.send((
-        opts.scheduler.clone(),
-        Message::RequestWork(RequestWork {
-            slots: slots(capacity),
-        }),
-    ));
+    // Work is asked for once the preload (if any) is over.
+    let mut asked_for_work = false;
+    let preload_start = Instant::now();
+    if opts.preload {
+        loader.preload();
+    }
     info!(%actor, threads, mode = ?opts.miss_mode, cache_bytes = opts.cache_bytes, "client ready");
 
     let mut tick = tokio::time::interval(TICK);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     loop {
+        if !asked_for_work && !loader.preloading() {
+            asked_for_work = true;
+            if opts.preload {
+                // What the preload fetched is charged to no frame.
+                let bytes = loader.take_unattributed();
+                info!(%actor, voxels = loader.stats.preloaded, mb = bytes as f64 / 1e6,
+                    seconds = preload_start.elapsed().as_secs_f64(), "preloaded");
+            }
+            if scheduler_up {
+                let _ = results.send((
+                    opts.scheduler.clone(),
+                    Message::RequestWork(RequestWork {
+                        slots: slots(capacity),
+                    }),
+                ));
+            }
+        }
         tokio::select! {
             d = mb.recv() => match d {
                 None => break,
@@ -296,6 +323,7 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
                         let t = (0..threads).min_by_key(|&t| busy[t]).unwrap_or(0);
                         busy[t] += 1;
                         outstanding += 1;
+                        batch.assigned(a.frame);
                         let _ = queues[t].send(job(a, diagonal, opts.isa));
                     }
                     Message::VoxelLoaded(v) => loader.loaded(from, v.id, v.data.0),
@@ -314,8 +342,9 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
                     if node == opts.scheduler.node && !scheduler_up {
                         scheduler_up = true;
                         let free = capacity.saturating_sub(outstanding);
-                        info!(%actor, free, "scheduler is back: asking for work again");
-                        if free > 0 {
+                        // Before the preload is over, work is not asked for yet.
+                        if asked_for_work && free > 0 {
+                            info!(%actor, free, "scheduler is back: asking for work again");
                             let _ = results.send((
                                 opts.scheduler.clone(),
                                 Message::RequestWork(RequestWork { slots: slots(free) }),
@@ -339,9 +368,20 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
             Some(d) = decoded_rx.recv() => loader.decoded(d),
             Some(r) = done_rx.recv() => {
                 busy[r.thread] = busy[r.thread].saturating_sub(1);
-                outstanding = outstanding.saturating_sub(1);
                 let prefetched = loader.take_unattributed();
-                finish_tile(r, prefetched, &opts, &pixels, &mut summary);
+                let frame = r.job.frame;
+                batch.finished(frame, finish_tile(r, prefetched, &mut summary));
+                if batch.ready() {
+                    let (done, freed) = batch.take();
+                    outstanding = outstanding.saturating_sub(freed);
+                    for msg in done {
+                        let _ = pixels.send((opts.display.clone(), msg));
+                    }
+                    let _ = pixels.send((
+                        opts.scheduler.clone(),
+                        Message::RequestWork(RequestWork { slots: slots(freed) }),
+                    ));
+                }
             }
             _ = tick.tick() => loader.tick(),
         }
@@ -371,6 +411,7 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
     summary.bytes_fetched = s.bytes_fetched;
     summary.refetched = s.refetched;
     summary.prefetched = s.prefetched;
+    summary.preloaded = s.preloaded;
     summary.evicted = cache.evicted();
     summary.peak_cache_bytes = cache.peak_bytes();
     info!(%actor, ?summary, retries = s.retries, "client stopped");
@@ -389,16 +430,10 @@ fn job(a: AssignTile, diagonal: f32, isa: dray_trace::render::Isa) -> TileJob {
     }
 }
 
-/// Sends a finished tile's pixels, its report and the request for the next
-/// tile, in this order; `prefetched` bytes (fetched by hints, asked for by
-/// no tile) are charged to it so that frames count every byte fetched.
-fn finish_tile(
-    r: TileResult,
-    prefetched: u64,
-    opts: &ClientOptions,
-    out: &mpsc::UnboundedSender<(Address, Message)>,
-    summary: &mut ClientSummary,
-) {
+/// A finished tile's pixels for the display (none if it failed);
+/// `prefetched` bytes (fetched by hints, asked for by no tile) are charged
+/// to it so that frames count every byte fetched.
+fn finish_tile(r: TileResult, prefetched: u64, summary: &mut ClientSummary) -> Option<Message> {
     let TileResult {
         job,
         image,
@@ -441,12 +476,11 @@ fn finish_tile(
             // The display reports the tile to the scheduler once it has
             // the pixels: a tile whose pixels die with this client is
             // reassigned, never counted done.
-            let _ = out.send((opts.display.clone(), Message::TileDone(done)));
+            Some(Message::TileDone(done))
         }
-        Err(e) => warn!(frame = job.frame, tile = ?job.tile, error = %e, "tile failed"),
+        Err(e) => {
+            warn!(frame = job.frame, tile = ?job.tile, error = %e, "tile failed");
+            None
+        }
     }
-    let _ = out.send((
-        opts.scheduler.clone(),
-        Message::RequestWork(RequestWork { slots: 1 }),
-    ));
 }
