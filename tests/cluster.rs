@@ -58,10 +58,28 @@ fn frames_equal_dray_render_for_any_clients_cache_and_shaping() {
     for clients in [1, 2, 8] {
         check_frames(&big, clients);
     }
+    // Preloaded caches, tiles sent back in batches of 4.
+    let (_, batched) = config(
+        dir.path(),
+        &config_text(
+            &db,
+            &path,
+            dir.path(),
+            2,
+            256.0,
+            "tiles_ahead = 8\npreload = true",
+            "",
+        ),
+    );
+    check_frames(&batched, 2);
     // A cache of a few voxels (each is some tens of kB), shaped links, and
     // the block mode.
     let links = "[links.client_store]\nlatency_ms = 2.0\nbandwidth_mbps = 200.0\n[links.client_scheduler]\nlatency_ms = 1.0\n";
-    for extra in ["miss_mode = \"suspend\"", "miss_mode = \"block\""] {
+    for extra in [
+        "miss_mode = \"suspend\"",
+        "miss_mode = \"block\"",
+        "miss_mode = \"suspend\"\ntiles_ahead = 8",
+    ] {
         let (_, tiny) = config(
             dir.path(),
             &config_text(&db, &path, dir.path(), 2, 0.15, extra, links),
