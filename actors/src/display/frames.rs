@@ -198,6 +198,27 @@ impl Frames {
         let mut new = 0;
         for row in 0..r.h as usize {
             let y = r.y as usize + row;
+            let line = y * w as usize + r.x as usize;
+            let cols = r.w as usize;
+            if !f.covered[line..line + cols].contains(&true) {
+                // A row nobody sent before (nearly always): copied whole.
+                let src = row * cols;
+                f.covered[line..line + cols].fill(true);
+                new += cols;
+                for (dst, p) in f.rgba[line..line + cols]
+                    .iter_mut()
+                    .zip(t.pixels.0[src * 4..(src + cols) * 4].chunks_exact(4))
+                {
+                    *dst = [p[0], p[1], p[2], p[3]];
+                }
+                if let (Some(d), Some(out)) = (&t.depth, &mut f.depth) {
+                    out[line..line + cols].copy_from_slice(&d.0[src..src + cols]);
+                }
+                if let (Some(ids), Some(out)) = (&t.prim_ids, &mut f.primid) {
+                    out[line..line + cols].copy_from_slice(&ids.0[src..src + cols]);
+                }
+                continue;
+            }
             for col in 0..r.w as usize {
                 let dst = y * w as usize + r.x as usize + col;
                 if f.covered[dst] {
@@ -316,5 +337,31 @@ mod tests {
             f.add_tile(&tile(0, 0, 0, 1, 1, 0), now),
             Err(TileRejected::UnknownFrame(0))
         ));
+    }
+
+    #[test]
+    fn a_tile_over_part_of_a_row_brings_only_its_new_pixels() {
+        let now = Instant::now();
+        let mut f = Frames::new(4, 2);
+        f.open(0);
+        let mut a = tile(0, 0, 0, 2, 1, 1);
+        a.depth = Some(dray_protocol::PackedF32(vec![1.0; 2]));
+        a.prim_ids = Some(dray_protocol::PackedU32(vec![10; 2]));
+        assert_eq!(f.add_tile(&a, now), Ok(2));
+        // Rows 0 (half covered) and 1 (new) of a 3-wide tile at x = 1.
+        let mut b = tile(0, 1, 0, 3, 2, 5);
+        b.depth = Some(dray_protocol::PackedF32(vec![2.0; 6]));
+        b.prim_ids = Some(dray_protocol::PackedU32(vec![20; 6]));
+        assert_eq!(f.add_tile(&b, now), Ok(5));
+        assert_eq!(f.add_tile(&tile(0, 0, 1, 1, 1, 3), now), Ok(1));
+        assert!(f.frame_done(0, FrameStats::default(), now));
+        let img = f.pop_ready().unwrap().image;
+        let rgba: Vec<u8> = img.rgba.iter().map(|p| p[0]).collect();
+        assert_eq!(rgba, [1, 1, 5, 5, 3, 5, 5, 5]);
+        assert_eq!(
+            img.depth.unwrap(),
+            [1.0, 1.0, 2.0, 2.0, f32::INFINITY, 2.0, 2.0, 2.0]
+        );
+        assert_eq!(img.primid.unwrap(), [10, 10, 20, 20, u32::MAX, 20, 20, 20]);
     }
 }
