@@ -14,6 +14,11 @@
 //! the next batch comes. Held tiles leave early when this client renders
 //! no other tile of their frame (a frame never waits for a batch to fill),
 //! and so when the client has nothing else to render.
+//!
+//! The render threads hand their finished tiles to the actor task in
+//! groups by the same rule (their share of a batch, or a frame with no
+//! other tile on that thread), so the actor task too wakes once a group
+//! rather than once a tile (`worker.rs`).
 
 use dray_protocol::Message;
 use std::collections::HashMap;
@@ -37,6 +42,11 @@ impl TileBatch {
             held: Vec::new(),
             rendering: HashMap::new(),
         }
+    }
+
+    /// Tiles a batch holds.
+    pub fn size(&self) -> usize {
+        self.size
     }
 
     /// A tile of `frame` was assigned.

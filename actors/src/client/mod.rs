@@ -241,7 +241,7 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
     let cache = Arc::new(VoxelCache::new(manifest.voxels.len(), opts.cache_bytes));
     let (req_tx, mut req_rx) = mpsc::unbounded_channel();
     let (decoded_tx, mut decoded_rx) = mpsc::unbounded_channel();
-    let (done_tx, mut done_rx) = mpsc::unbounded_channel::<TileResult>();
+    let (done_tx, mut done_rx) = mpsc::unbounded_channel::<Vec<TileResult>>();
     let mut loader = Loader::new(
         manifest.clone(),
         cache.clone(),
@@ -256,6 +256,7 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
     });
     let stop = Arc::new(AtomicBool::new(false));
     let threads = opts.threads.max(1);
+    let mut batch = TileBatch::new(opts.tiles_ahead);
     let mut queues = Vec::with_capacity(threads);
     let mut handles = Vec::with_capacity(threads);
     for i in 0..threads {
@@ -267,6 +268,8 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
             tiles_in_progress: 1 + opts.tiles_ahead,
             stop: stop.clone(),
             results: done_tx.clone(),
+            // Each thread's share of a batch.
+            group: (batch.size() / threads).max(1),
         };
         let h = std::thread::Builder::new()
             .name(format!("render-{i}"))
@@ -285,7 +288,6 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
     // Tiles assigned whose slots are not asked for again yet (being
     // rendered, queued, or finished and held for a batch).
     let mut outstanding = 0usize;
-    let mut batch = TileBatch::new(opts.tiles_ahead);
     let mut scheduler_up = true;
     // Work is asked for once the preload (if any) is over.
     let mut asked_for_work = false;
@@ -366,11 +368,13 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
             },
             Some(req) = req_rx.recv() => loader.request(req),
             Some(d) = decoded_rx.recv() => loader.decoded(d),
-            Some(r) = done_rx.recv() => {
-                busy[r.thread] = busy[r.thread].saturating_sub(1);
-                let prefetched = loader.take_unattributed();
-                let frame = r.job.frame;
-                batch.finished(frame, finish_tile(r, prefetched, &mut summary));
+            Some(group) = done_rx.recv() => {
+                for r in group {
+                    busy[r.thread] = busy[r.thread].saturating_sub(1);
+                    let prefetched = loader.take_unattributed();
+                    let frame = r.job.frame;
+                    batch.finished(frame, finish_tile(r, prefetched, &mut summary));
+                }
                 if batch.ready() {
                     let (done, freed) = batch.take();
                     outstanding = outstanding.saturating_sub(freed);

@@ -52,7 +52,12 @@ pub(crate) struct WorkerCtx {
     pub mode: MissMode,
     pub tiles_in_progress: usize,
     pub stop: Arc<AtomicBool>,
-    pub results: mpsc::UnboundedSender<TileResult>,
+    /// Finished tiles go to the client's actor task in groups: one wakeup
+    /// of the actor per group instead of one per tile ([`super::batch`]).
+    pub results: mpsc::UnboundedSender<Vec<TileResult>>,
+    /// Finished tiles a group holds before it is sent; a group also leaves
+    /// once this thread renders no other tile of one of its frames.
+    pub group: usize,
 }
 
 async fn run_job(
@@ -99,6 +104,8 @@ async fn run_job(
 /// counter of its thread, so that the thread can tell its waits from its
 /// work.
 struct Timed<F> {
+    /// The tile's frame.
+    frame: u64,
     inner: std::pin::Pin<Box<F>>,
     traced: Rc<Cell<std::time::Duration>>,
 }
@@ -139,10 +146,13 @@ pub(crate) fn render_thread(
         let traced = Rc::new(Cell::new(std::time::Duration::ZERO));
         let (mut traced_total, mut idle) = (std::time::Duration::ZERO, std::time::Duration::ZERO);
         let chooser = Rc::new(Cell::new(PacketChooser::new(Packets::Auto)));
-        let start_job = |job| Timed {
+        let start_job = |job: TileJob| Timed {
+            frame: job.frame,
             inner: Box::pin(run_job(ctx, index, job, chooser.clone())),
             traced: traced.clone(),
         };
+        // Finished tiles not yet sent to the actor.
+        let mut unsent: Vec<TileResult> = Vec::new();
         loop {
             // Take what is waiting, up to the limit.
             while open && running.len() < limit {
@@ -195,12 +205,19 @@ pub(crate) fn render_thread(
                 Event::Done(mut r) => {
                     r.stall = stalled - charged;
                     charged = stalled;
-                    let _ = ctx.results.send(r);
+                    unsent.push(r);
+                    let frame_over = |f: u64| !running.iter().any(|t| t.frame == f);
+                    if unsent.len() >= ctx.group || unsent.iter().any(|r| frame_over(r.job.frame)) {
+                        let _ = ctx.results.send(std::mem::take(&mut unsent));
+                    }
                 }
                 Event::Job(Some(job)) => running.push(start_job(job)),
                 Event::Job(None) => open = false,
                 Event::Idle => {}
             }
+        }
+        if !unsent.is_empty() {
+            let _ = ctx.results.send(unsent);
         }
         tracing::info!(
             thread = index,
