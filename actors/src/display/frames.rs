@@ -205,12 +205,9 @@ impl Frames {
                 let src = row * cols;
                 f.covered[line..line + cols].fill(true);
                 new += cols;
-                for (dst, p) in f.rgba[line..line + cols]
-                    .iter_mut()
-                    .zip(t.pixels.0[src * 4..(src + cols) * 4].chunks_exact(4))
-                {
-                    *dst = [p[0], p[1], p[2], p[3]];
-                }
+                f.rgba[line..line + cols]
+                    .as_flattened_mut()
+                    .copy_from_slice(&t.pixels.0[src * 4..(src + cols) * 4]);
                 if let (Some(d), Some(out)) = (&t.depth, &mut f.depth) {
                     out[line..line + cols].copy_from_slice(&d.0[src..src + cols]);
                 }
