@@ -229,10 +229,10 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
     let me = mb.handle();
     let fetches = sender(me.clone(), "voxel fetch");
     // Finished tiles' pixels and the request for as many new tiles go out
-    // in this order in one queue, a batch at a time ([`batch`]): the scheduler counts a tile
-    // done only once its pixels have left (a client that dies with pixels
-    // still queued has the tile reassigned instead of lost), and it never
-    // sees more tiles asked for than the client holds. A display slow to
+    // in this order in one queue, a batch at a time ([`batch`]): the
+    // scheduler counts a tile done only once its pixels have left (a client
+    // that dies with pixels still queued has the tile reassigned instead of
+    // lost), and it never sees more tiles asked for than the client holds. A display slow to
     // take tiles therefore slows the requests too, which also bounds the
     // queue. Other control messages (the first request, pongs) go in
     // their own.
