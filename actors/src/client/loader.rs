@@ -2,7 +2,8 @@
 //! channel (each request with a oneshot for the answer); the loader, run
 //! by the client's actor task, sends one [`FetchVoxel`] per voxel however
 //! many packets wait for it, at most `max_inflight` at once, counting those
-//! still being decoded (the rest queue, hints last), decodes and verifies
+//! still being decoded (the rest queue: packets' requests first, then a
+//! preload of the whole model if asked for, hints last), decodes and verifies
 //! what comes back on tokio's blocking pool, puts it in the cache and
 //! answers every waiter.
 //!
@@ -276,7 +277,9 @@ impl Loader {
     }
 
     /// Whether a preload is still going on (queued, in flight or being
-    /// decoded).
+    /// decoded). A hinted prefetch in flight counts too: both are fetches
+    /// no packet waits for, and the client asks for tiles once neither is
+    /// left.
     pub fn preloading(&self) -> bool {
         !self.preload.is_empty() || self.pending.values().any(|p| p.prefetch)
     }
