@@ -18,10 +18,9 @@ use crate::camera::CameraBasis;
 use crate::clock;
 use crate::packet::{Packet, Step, Traversal};
 use crate::render::{voxel_color, FrameStats, RenderSettings, AMBIENT, BACKGROUND, SHADOW_EPS};
-use crate::scene::{PreparedVoxel, TopLevel, VoxelSource};
+use crate::scene::{TopLevel, VoxelSource};
 use crate::tile::Rect;
 use glam::Vec3;
-use std::sync::Arc;
 
 /// One primary packet in this many (a power of two) counts its lanes at
 /// child boxes.
@@ -127,9 +126,6 @@ pub(crate) struct PacketJob<const N: usize, const BW: u32> {
     normals: [Vec3; N],
     albedo: [Vec3; N],
     mirror: [f32; N],
-    /// The voxel of the last surface looked up (neighbouring lanes mostly
-    /// hit the same one).
-    last: Option<Arc<PreparedVoxel>>,
 }
 
 impl<const N: usize, const BW: u32> PacketJob<N, BW> {
@@ -155,7 +151,6 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
             normals: [Vec3::Y; N],
             albedo: [Vec3::ZERO; N],
             mirror: [0.0; N],
-            last: None,
         };
         job.start(ctx, rect, bx, by);
         job
@@ -179,7 +174,6 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
         self.cur_dirs = dirs;
         self.trav.reset();
         self.stage = Stage::Primary;
-        self.last = None;
     }
 
     /// Runs the packet until it is done (its pixels written to `out`) or
@@ -300,6 +294,9 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
             self.mirror = [0.0; N];
         }
         let cur = &self.cur;
+        // The voxel of the last surface looked up: neighbouring lanes
+        // mostly hit the same one.
+        let mut last: Option<crate::scene::VoxelRef<'_>> = None;
         for i in self.lane..N {
             if self.weight[i] == 0.0 {
                 continue;
@@ -310,16 +307,16 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
                 continue;
             }
             let id = cur.voxel[i];
-            if self.last.as_ref().is_none_or(|v| v.id != id) {
+            if last.as_ref().is_none_or(|v| v.id != id) {
                 match source.voxel(id) {
-                    Some(v) => self.last = Some(v),
+                    Some(v) => last = Some(v),
                     None => {
                         self.lane = i;
                         return Some(id);
                     }
                 }
             }
-            let vox = self.last.as_ref().expect("just set");
+            let vox = last.as_ref().expect("just set");
             let (mut n, c) = vox.surface(cur.tri[i], cur.u[i], cur.v[i]);
             let c = Vec3::from_array(c);
             if n.dot(self.cur_dirs[i]) > 0.0 {
@@ -385,7 +382,6 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
                 }
             }
             self.stage = Stage::Done;
-            self.last = None;
             return;
         }
         for i in 0..N {

@@ -9,7 +9,7 @@ use crate::camera::Camera;
 use crate::job::{Ctx, PacketJob, Region};
 use crate::packet::Step;
 use crate::render::{FrameStats, Isa, Packets, RenderSettings};
-use crate::scene::{PreparedVoxel, TopLevel, VoxelSource};
+use crate::scene::{PreparedVoxel, TopLevel, VoxelRef, VoxelSource};
 use futures::future::BoxFuture;
 use futures::stream::{FuturesUnordered, StreamExt};
 use std::collections::HashMap;
@@ -252,7 +252,7 @@ struct JobSource<'a> {
 }
 
 impl VoxelSource for JobSource<'_> {
-    fn voxel(&self, id: u32) -> Option<Arc<PreparedVoxel>> {
+    fn voxel(&self, id: u32) -> Option<VoxelRef<'_>> {
         if let Some(word) = self.touched.get(id as usize / 64) {
             let bit = 1u64 << (id % 64);
             // Read first: a voxel is entered many times, marked once.
@@ -261,7 +261,7 @@ impl VoxelSource for JobSource<'_> {
             }
         }
         match self.held.iter().find(|v| v.id == id) {
-            Some(v) => Some(v.clone()),
+            Some(v) => Some(VoxelRef::Borrowed(v)),
             None => self.loader.voxel(id),
         }
     }

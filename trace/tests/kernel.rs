@@ -9,10 +9,10 @@ use dray_scene::rng::Rng;
 use dray_trace::camera::Camera;
 use dray_trace::packet::{Packet, Step, Traversal};
 use dray_trace::render::{render, Frame, Isa, Packets, RenderSettings};
-use dray_trace::scene::{PreparedVoxel, ResidentSource, VoxelSource};
+use dray_trace::scene::{ResidentSource, VoxelRef, VoxelSource};
 use glam::Vec3;
 use std::collections::{HashSet, VecDeque};
-use std::sync::{Arc, Mutex};
+use std::sync::Mutex;
 
 fn brute_force(tris: &[[Vec3; 3]], ray: &Ray) -> Option<Hit> {
     let mut best: Option<Hit> = None;
@@ -97,7 +97,7 @@ struct Delayed<'a> {
 }
 
 impl VoxelSource for Delayed<'_> {
-    fn voxel(&self, id: u32) -> Option<Arc<PreparedVoxel>> {
+    fn voxel(&self, id: u32) -> Option<VoxelRef<'_>> {
         if self.resident.lock().unwrap().contains(&id) {
             self.all.voxel(id)
         } else {

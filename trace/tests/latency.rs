@@ -7,7 +7,7 @@ use dray_scene::progress::Progress;
 use dray_trace::camera::Camera;
 use dray_trace::render::Isa;
 use dray_trace::render::RenderSettings;
-use dray_trace::scene::{PreparedVoxel, ResidentSource, TopLevel, VoxelSource};
+use dray_trace::scene::{PreparedVoxel, ResidentSource, TopLevel, VoxelRef, VoxelSource};
 use dray_trace::tile::{render_tile, LoadError, MissMode, Rect, TileImage, VoxelLoader};
 use futures::future::BoxFuture;
 use glam::Vec3;
@@ -26,7 +26,7 @@ struct SlowLoader {
 }
 
 impl VoxelSource for SlowLoader {
-    fn voxel(&self, id: u32) -> Option<Arc<PreparedVoxel>> {
+    fn voxel(&self, id: u32) -> Option<VoxelRef<'_>> {
         if self.resident.lock().unwrap().contains(&id) {
             self.all.voxel(id)
         } else {
@@ -40,7 +40,7 @@ impl VoxelLoader for SlowLoader {
         Box::pin(async move {
             tokio::time::sleep(DELAY).await;
             self.resident.lock().unwrap().insert(id);
-            self.all.voxel(id).ok_or(LoadError {
+            self.all.shared(id).ok_or(LoadError {
                 voxel: id,
                 message: "no such voxel".into(),
             })

@@ -8,7 +8,7 @@ use common::{cameras, isas, plant, settings, shared_model, Model};
 use dray_scene::rng::Rng;
 use dray_trace::camera::Camera;
 use dray_trace::render::{render, Frame, Isa, Packets, ReflectRule, RenderSettings};
-use dray_trace::scene::{PreparedVoxel, ResidentSource, VoxelSource};
+use dray_trace::scene::{PreparedVoxel, ResidentSource, VoxelRef, VoxelSource};
 use dray_trace::tile::{render_tile, LoadError, MissMode, Rect, TileImage, VoxelLoader};
 use futures::future::BoxFuture;
 use std::collections::VecDeque;
@@ -19,14 +19,14 @@ use std::time::Duration;
 struct Resident<'a>(&'a ResidentSource);
 
 impl VoxelSource for Resident<'_> {
-    fn voxel(&self, id: u32) -> Option<Arc<PreparedVoxel>> {
+    fn voxel(&self, id: u32) -> Option<VoxelRef<'_>> {
         self.0.voxel(id)
     }
 }
 
 impl VoxelLoader for Resident<'_> {
     fn load(&self, id: u32) -> BoxFuture<'_, Result<Arc<PreparedVoxel>, LoadError>> {
-        let v = self.0.voxel(id).ok_or(LoadError {
+        let v = self.0.shared(id).ok_or(LoadError {
             voxel: id,
             message: "no such voxel".into(),
         });
@@ -58,12 +58,12 @@ impl<'a> TinyCache<'a> {
 }
 
 impl VoxelSource for TinyCache<'_> {
-    fn voxel(&self, id: u32) -> Option<Arc<PreparedVoxel>> {
+    fn voxel(&self, id: u32) -> Option<VoxelRef<'_>> {
         let mut lru = self.lru.lock().unwrap();
         let k = lru.iter().position(|v| v.id == id)?;
         let v = lru.remove(k).unwrap();
         lru.push_back(v.clone());
-        Some(v)
+        Some(VoxelRef::Shared(v))
     }
 }
 
@@ -73,7 +73,7 @@ impl VoxelLoader for TinyCache<'_> {
         *self.loads.lock().unwrap() += 1;
         Box::pin(async move {
             tokio::time::sleep(delay).await;
-            let v = self.all.voxel(id).ok_or(LoadError {
+            let v = self.all.shared(id).ok_or(LoadError {
                 voxel: id,
                 message: "no such voxel".into(),
             })?;

@@ -20,7 +20,7 @@ use crate::names::StoreRoutes;
 use dray_protocol::{Address, FetchVoxel, Message, Name, VoxelError};
 use dray_scene::db::manifest::{Manifest, VoxelEntry};
 use dray_scene::voxel::Voxel;
-use dray_trace::scene::{PreparedVoxel, VoxelSource};
+use dray_trace::scene::{PreparedVoxel, VoxelRef, VoxelSource};
 use dray_trace::tile::{LoadError, VoxelLoader};
 use futures::future::BoxFuture;
 use std::collections::{HashMap, VecDeque};
@@ -62,8 +62,8 @@ pub(crate) struct TileLoader<'a> {
 }
 
 impl VoxelSource for TileLoader<'_> {
-    fn voxel(&self, id: u32) -> Option<Arc<PreparedVoxel>> {
-        self.shared.cache.get(id)
+    fn voxel(&self, id: u32) -> Option<VoxelRef<'_>> {
+        self.shared.cache.get(id).map(VoxelRef::Shared)
     }
 }
 
