@@ -72,6 +72,8 @@ struct Behaviour {
     silent: bool,
     /// Reports hit positions: where its pixel rays meet the plane z = 0.
     plane_hits: bool,
+    /// How many times `render` a tile of this frame takes.
+    slowdown: fn(u64) -> u32,
 }
 
 impl Behaviour {
@@ -82,6 +84,7 @@ impl Behaviour {
             cost: |_| 1000,
             silent: false,
             plane_hits: true,
+            slowdown: |_| 1,
         }
     }
 }
@@ -111,7 +114,7 @@ fn spawn_client(net: &InProcNet, i: usize, b: Behaviour, log: Log) -> (Bus, Join
             let log = log.clone();
             tokio::spawn(async move {
                 while let Some((frame, tile, hits)) = rx.recv().await {
-                    tokio::time::sleep(b.render).await;
+                    tokio::time::sleep(b.render * (b.slowdown)(frame)).await;
                     if b.silent {
                         continue;
                     }
@@ -889,4 +892,68 @@ async fn scheduler_takes_tile_reports_from_the_display_but_not_from_strangers() 
     assert_eq!(c.frame_done().await.frame, 0);
     let s = c.stop().await;
     assert_eq!((s.frames, s.reassigned), (1, 0));
+}
+
+#[tokio::test(start_paused = true)]
+async fn scheduler_affinity_works_ahead_on_own_tiles_before_taking_anothers() {
+    // Two clients, equally fast except that client 1 is eight times slower
+    // in frames 2 and 4 (another program took its core); the camera stands
+    // still and every camera is sent at once. When client 0 has run
+    // through its own tiles of such a frame, it goes on with its own tiles
+    // of the next frame (released early for it) instead of taking client
+    // 1's, which would fetch what its cache lacks: before its first tile
+    // of frame k + 1 it takes at most its two slots' worth of the tiles
+    // that client 1 rendered in frame k - 1.
+    let hiccup = Behaviour {
+        slowdown: |frame| if frame == 2 || frame == 4 { 8 } else { 1 },
+        ..Behaviour::normal()
+    };
+    let (w, h) = (256, 256);
+    let mut c = cluster(
+        options(true, Duration::from_secs(60)),
+        w,
+        h,
+        &[Behaviour::normal(), hiccup],
+    );
+    let still = Camera {
+        eye: [0.0, 0.0, 5.0],
+        look: [0.0, 0.0, 0.0],
+        up: [0.0, 1.0, 0.0],
+        fov_y_deg: 50.0,
+    };
+    for k in 0..6 {
+        c.send_camera(k, still).await;
+    }
+    for k in 0..6 {
+        assert_eq!(c.frame_done().await.frame, k);
+    }
+    let grid = TileGrid::new(w, h, 32);
+    let events = c.events();
+    for k in [2, 4] {
+        let before = c.assignments_in(k - 1, &grid);
+        let slow_had = |tile: &TileRect| {
+            let i = grid.index_of(tile).expect("a grid tile");
+            before.get(&i).is_some_and(|v| v[0] == 1)
+        };
+        let mut taken = 0;
+        for e in &events {
+            if let Event::Assigned {
+                frame,
+                tile,
+                client: 0,
+            } = e
+            {
+                if *frame == k + 1 {
+                    break;
+                }
+                taken += usize::from(*frame == k && slow_had(tile));
+            }
+        }
+        let slow_tiles = before.values().filter(|v| v[0] == 1).count();
+        assert!(
+            slow_tiles >= 8 && taken <= 2,
+            "frame {k}: the fast client took {taken} of the slow one's {slow_tiles} tiles first"
+        );
+    }
+    c.stop().await;
 }

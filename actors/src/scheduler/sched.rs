@@ -290,6 +290,17 @@ impl Frame {
         self.fresh_left > 0 || self.retry_for(c).is_some()
     }
 
+    /// Whether client `c` has work here that is not another client's:
+    /// a tile to retry, one of its own, or one nobody has.
+    fn has_own_work_for(&self, c: &Name) -> bool {
+        self.retry_for(c).is_some()
+            || !self.unowned.is_empty()
+            || self
+                .group_of
+                .get(c)
+                .is_some_and(|&g| !self.groups[g].is_empty())
+    }
+
     /// The tile client `c` should render next, taken out of its queue.
     fn pick(&mut self, c: &Name, affinity: bool, rng: &mut Rng) -> Option<usize> {
         while let Some(&i) = self.retry.front() {
@@ -543,9 +554,39 @@ impl Scheduler {
                 if state.credits == 0 {
                     continue;
                 }
-                let Some(frame) = self.frames.values_mut().find(|f| f.has_work_for(node)) else {
+                // With affinity, a client's own tiles come first, in the
+                // oldest frame that has some, before another client's in an
+                // older frame: taking another's tile fetches what its cache
+                // lacks. A client with no tiles of its own in any open frame
+                // releases the next frame early, so that it works ahead on
+                // its own region rather than finish the others' (it still
+                // takes one of theirs now, and theirs again once it has run
+                // through its own in the next frame too).
+                let own = if self.opts.affinity {
+                    self.frames.values().position(|f| f.has_own_work_for(node))
+                } else {
+                    None
+                };
+                let at = match own {
+                    Some(at) => at,
+                    None => match self.frames.values().position(|f| f.has_work_for(node)) {
+                        Some(at) => at,
+                        None => continue,
+                    },
+                };
+                let open = self.frames.len();
+                let Some(frame) = self.frames.values_mut().nth(at) else {
                     continue;
                 };
+                if self.opts.affinity
+                    && own.is_none()
+                    && at + 1 == open
+                    && !frame.announced
+                    && frame.fresh_left > 0
+                {
+                    frame.announced = true;
+                    out.push(Out::Assigned(frame.number));
+                }
                 let Some(i) = frame.pick(node, self.opts.affinity, &mut self.rng) else {
                     continue;
                 };
