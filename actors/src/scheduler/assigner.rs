@@ -1,7 +1,9 @@
 //! The FrameAssigner actor: double buffering. It queues the display's camera
 //! updates and releases them to the scheduler one at a time, the next one as
-//! soon as every tile of the previous one has been handed out, so that the
-//! clients render frame k+1's first tiles while frame k's last ones finish.
+//! soon as the scheduler says the previous one is assigned (every tile handed
+//! out, or, with affinity, a client has run out of its own tiles), so that
+//! the clients render frame k+1's first tiles while frame k's last ones
+//! finish.
 
 use crate::ActorError;
 use dray_protocol::{Address, CameraUpdate, FrameStart, Message, RenderSettings};

@@ -117,6 +117,8 @@ struct Frame {
     retry: VecDeque<usize>,
     /// Tiles never assigned yet.
     fresh_left: usize,
+    /// The assigner was told this frame is assigned (it then releases the
+    /// next): every tile handed out, or a client ran out of its own.
     announced: bool,
     done: usize,
     first_assign: Option<Instant>,
