@@ -317,9 +317,9 @@ pub trait VoxelSource: Sync {
 /// keeps it for at least as long as the borrow (every voxel of a
 /// [`ResidentSource`], a voxel a job holds), or shared where a cache may
 /// evict it meanwhile. A packet enters a voxel many times a frame; taking
-/// a reference count each time (two atomic operations, on one cache line
-/// that every render thread touches) cost about 4 % of the kernel's time
-/// on far views.
+/// a reference count each time (two atomic operations, on a cache line
+/// that every render thread touches) made shadow rays inside the 12.5 M
+/// plant 2-8 % slower.
 pub enum VoxelRef<'a> {
     Borrowed(&'a PreparedVoxel),
     Shared(Arc<PreparedVoxel>),
@@ -357,9 +357,7 @@ impl ResidentSource {
     pub fn voxel_count(&self) -> usize {
         self.voxels.len()
     }
-}
 
-impl ResidentSource {
     /// Voxel `id`, as a handle of its own.
     pub fn shared(&self, id: u32) -> Option<Arc<PreparedVoxel>> {
         self.voxels.get(id as usize).cloned()
