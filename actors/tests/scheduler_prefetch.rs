@@ -3,7 +3,7 @@
 //! walk of the same sample rays of the predicted camera enters first.
 
 use dray_actors::names::{self, Shard, StoreRoutes};
-use dray_actors::scheduler::{run_prefetcher, PrefetcherOptions, TileGrid};
+use dray_actors::scheduler::{run_prefetcher, PrefetcherOptions, TileGrid, WARM_AFTER};
 use dray_actors::settings::kernel_camera;
 use dray_protocol::{
     Blob, BoundedVec, Camera, CameraUpdate, ManifestData, Message, Name, PackedF32, PackedU32,
@@ -79,6 +79,7 @@ fn owners() -> TileOwners {
         // No content known: hints go by the tiles' owners.
         hit_counts: Blob(vec![0; grid.count()]),
         hits: PackedF32(Vec::new()),
+        misses: 1,
     }
 }
 
@@ -257,12 +258,59 @@ async fn scheduler_prefetcher_hints_the_voxels_of_each_clients_tiles() {
         assert_eq!(hint(mb).await.expect("another hint").frame, 3);
     }
 
+    // Warm caches: eight frames in a row done without a miss. Then only
+    // every fourth frame is planned, until a frame misses again.
+    for frame in 2..2 + u64::from(WARM_AFTER) {
+        let warm = TileOwners {
+            frame,
+            misses: 0,
+            ..owners()
+        };
+        feeder
+            .send(&names::prefetcher(), Message::TileOwners(warm))
+            .await
+            .unwrap();
+    }
+    let mut hinted = Vec::new();
+    for seq in 3..11u64 {
+        let u = Message::CameraUpdate(CameraUpdate {
+            seq,
+            camera: cam(seq as f32 * 0.5),
+        });
+        feeder.send(&names::prefetcher(), u).await.unwrap();
+        if let Some(h) = hint(&mut clients[0]).await {
+            hinted.push(h.frame);
+            assert_eq!(hint(&mut clients[1]).await.map(|h| h.frame), Some(h.frame));
+        }
+    }
+    assert_eq!(hinted, vec![4, 8], "warm: every fourth frame planned");
+    let missed = TileOwners {
+        frame: 2 + u64::from(WARM_AFTER),
+        misses: 3,
+        ..owners()
+    };
+    feeder
+        .send(&names::prefetcher(), Message::TileOwners(missed))
+        .await
+        .unwrap();
+    let u = Message::CameraUpdate(CameraUpdate {
+        seq: 11,
+        camera: cam(5.5),
+    });
+    feeder.send(&names::prefetcher(), u).await.unwrap();
+    assert_eq!(
+        hint(&mut clients[0]).await.map(|h| h.frame),
+        Some(12),
+        "a miss: planned again"
+    );
+
     let bye = Message::Shutdown(Shutdown {
         reason: "test over".into(),
     });
     feeder.send(&names::prefetcher(), bye).await.unwrap();
     let summary = task.await.unwrap().unwrap();
-    assert_eq!(summary.hints, 4);
+    assert_eq!(summary.hints, 4 + 2 * 2 + 2);
+    assert_eq!(summary.frames_skipped, 6);
     assert!(summary.voxels_hinted >= 4);
     drop(store);
     store_task.abort();

@@ -161,6 +161,7 @@ pub fn one_of_each(voxel_bytes: usize) -> Vec<Message> {
             .expect("two entries are under the bound"),
             hit_counts: Blob(vec![2, 0, 0, 1]),
             hits: PackedF32(vec![1.0, 2.0, 3.0, -1.0, 0.5, 8.0, 4.0, 4.0, -4.0]),
+            misses: 17,
         }),
     ]
 }

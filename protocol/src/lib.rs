@@ -36,8 +36,9 @@ pub type VoxelId = u32;
 /// Version of the wire protocol; both ends of a connection must agree.
 /// 2: the distributed renderer's messages (manifest, tile reports, frame
 /// start and assignment, tile owners) and the shading render settings;
-/// 3: tile reports carry hit positions (reprojection affinity).
-pub const PROTOCOL_VERSION: u32 = 3;
+/// 3: tile reports carry hit positions (reprojection affinity);
+/// 4: tile owners carry the frame's misses (the prefetcher's throttle).
+pub const PROTOCOL_VERSION: u32 = 4;
 
 /// ALPN protocol id spoken over QUIC.
 pub const ALPN: &[u8] = b"dray/3";

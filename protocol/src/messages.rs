@@ -370,6 +370,10 @@ pub struct TileOwners {
     /// The tiles' hit positions (x, y, z), tile after tile, as their
     /// [`TileReport`]s gave them.
     pub hits: PackedF32,
+    /// Times the frame's packets met a voxel their client did not hold
+    /// (the sum of the tiles' `misses`): the prefetcher plans less while
+    /// frames have none.
+    pub misses: u64,
 }
 
 /// Every actor message. The variant order is the wire tag: append only.
@@ -509,6 +513,8 @@ impl MessageKind {
                     + MAX_STATS_CLIENTS * (crate::MAX_NAME_LEN + 1)
                     + crate::MAX_FRAME_TILES * (1 + MAX_TILE_HITS * 12)
                     + 2 * 5
+                    // misses: a u64 varint
+                    + 10
             }
             MessageKind::VoxelError | MessageKind::Shutdown => ENVELOPE_OVERHEAD + text,
             MessageKind::TileDone => {

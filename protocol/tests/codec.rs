@@ -349,6 +349,7 @@ fn maximal_messages_fit_their_limits() {
             clients: BoundedVec::new(vec![long('c'); MAX_STATS_CLIENTS]).unwrap(),
             hit_counts: Blob(vec![MAX_TILE_HITS as u8; MAX_FRAME_TILES]),
             hits: PackedF32(vec![f32::MAX; MAX_FRAME_TILES * MAX_TILE_HITS * 3]),
+            misses: u64::MAX,
         }),
     ];
     for msg in msgs {

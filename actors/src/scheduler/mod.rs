@@ -37,6 +37,8 @@ mod sched;
 mod tiles;
 
 pub use assigner::{run_assigner, AssignerOptions, MAX_QUEUED_FRAMES};
-pub use prefetch::{run_prefetcher, PrefetcherOptions, PrefetcherSummary};
+pub use prefetch::{
+    plans_frame, run_prefetcher, PrefetcherOptions, PrefetcherSummary, WARM_AFTER, WARM_STRIDE,
+};
 pub use sched::{run_scheduler, SchedulerOptions, SchedulerSummary};
 pub use tiles::TileGrid;

@@ -462,6 +462,7 @@ impl Frame {
                     .flat_map(|h| h.to_array())
                     .collect(),
             ),
+            misses: stats.misses,
         };
         (stats, owners)
     }
