@@ -41,7 +41,7 @@ pub type VoxelId = u32;
 pub const PROTOCOL_VERSION: u32 = 4;
 
 /// ALPN protocol id spoken over QUIC.
-pub const ALPN: &[u8] = b"dray/3";
+pub const ALPN: &[u8] = b"dray/4";
 
 /// Largest compressed voxel blob a store may send.
 pub const MAX_VOXEL_BYTES: usize = 64 << 20;
