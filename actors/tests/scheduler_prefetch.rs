@@ -83,6 +83,15 @@ fn owners() -> TileOwners {
     }
 }
 
+/// [`owners`] as frame `frame`'s, whose packets met `misses` missing voxels.
+fn owners_of(frame: u64, misses: u64) -> Message {
+    Message::TileOwners(TileOwners {
+        frame,
+        misses,
+        ..owners()
+    })
+}
+
 /// Per client, the voxels the first `PER_RAY` content boxes entered along
 /// each sample ray (by entry distance, over every voxel), and every voxel
 /// any of its rays enters.
@@ -261,13 +270,8 @@ async fn scheduler_prefetcher_hints_the_voxels_of_each_clients_tiles() {
     // Warm caches: eight frames in a row done without a miss. Then only
     // every fourth frame is planned, until a frame misses again.
     for frame in 2..2 + u64::from(WARM_AFTER) {
-        let warm = TileOwners {
-            frame,
-            misses: 0,
-            ..owners()
-        };
         feeder
-            .send(&names::prefetcher(), Message::TileOwners(warm))
+            .send(&names::prefetcher(), owners_of(frame, 0))
             .await
             .unwrap();
     }
@@ -284,13 +288,11 @@ async fn scheduler_prefetcher_hints_the_voxels_of_each_clients_tiles() {
         }
     }
     assert_eq!(hinted, vec![4, 8], "warm: every fourth frame planned");
-    let missed = TileOwners {
-        frame: 2 + u64::from(WARM_AFTER),
-        misses: 3,
-        ..owners()
-    };
     feeder
-        .send(&names::prefetcher(), Message::TileOwners(missed))
+        .send(
+            &names::prefetcher(),
+            owners_of(2 + u64::from(WARM_AFTER), 3),
+        )
         .await
         .unwrap();
     let u = Message::CameraUpdate(CameraUpdate {

@@ -232,9 +232,9 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
     // in this order in one queue, a batch at a time ([`batch`]): the
     // scheduler counts a tile done only once its pixels have left (a client
     // that dies with pixels still queued has the tile reassigned instead of
-    // lost), and it never sees more tiles asked for than the client holds. A display slow to
-    // take tiles therefore slows the requests too, which also bounds the
-    // queue. Other control messages (the first request, pongs) go in
+    // lost), and it never sees more tiles asked for than the client holds.
+    // A display slow to take tiles therefore slows the requests too, which
+    // also bounds the queue. Other control messages (the first request, pongs) go in
     // their own.
     let results = sender(me.clone(), "control message");
     let pixels = sender(me.clone(), "finished tile");
