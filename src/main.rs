@@ -232,6 +232,11 @@ struct RenderArgs {
     /// coherent the rays of the tiles before were), 16 or 32.
     #[arg(long, value_parser = parse_packets, default_value = "auto")]
     packets: Packets,
+    /// Trace every shadow packet through the voxels, without first trying
+    /// the triangle that blocked the packet before (the answers are the
+    /// same; for measuring the traversal alone).
+    #[arg(long)]
+    no_occluder_cache: bool,
     /// Timed passes (after one untimed warm-up); best and median are reported.
     #[arg(long, default_value_t = 1)]
     repeat: usize,
@@ -775,6 +780,7 @@ fn render(a: &RenderArgs) -> Result<()> {
         reflectance: a.reflectance,
         voxel_colors: a.voxel_colors,
         packets: a.packets,
+        occluder_cache: !a.no_occluder_cache,
         ..defaults
     };
     let threads = settings.threads;
@@ -834,6 +840,8 @@ fn render(a: &RenderArgs) -> Result<()> {
             "reflection_rays": s.reflection_rays,
             "shadow_mrays_per_s": shadow_mrays,
             "occluded_fraction": (s.shadow_rays > 0).then(|| s.occluded as f64 / s.shadow_rays as f64),
+            "shadow_packets": s.shadow_packets,
+            "occluder_skips": s.occluder_skips,
             "threads": threads,
             "width": frame.width,
             "height": frame.height,

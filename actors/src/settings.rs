@@ -39,6 +39,7 @@ pub fn kernel_settings(
         voxel_colors: s.voxel_colors,
         // Each render thread picks per tile (`PacketChooser`).
         packets: Packets::Auto,
+        occluder_cache: true,
     }
 }
 

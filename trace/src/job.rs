@@ -16,7 +16,7 @@
 
 use crate::camera::CameraBasis;
 use crate::clock;
-use crate::packet::{Packet, Step, Traversal};
+use crate::packet::{Occluder, Packet, Step, Traversal};
 use crate::render::{voxel_color, FrameStats, RenderSettings, AMBIENT, BACKGROUND, SHADOW_EPS};
 use crate::scene::{TopLevel, VoxelSource};
 use crate::tile::Rect;
@@ -126,6 +126,11 @@ pub(crate) struct PacketJob<const N: usize, const BW: u32> {
     normals: [Vec3; N],
     albedo: [Vec3; N],
     mirror: [f32; N],
+    /// The triangle that last blocked a lane of this job's shadow packets
+    /// (kept from block to block), and whether the current shadow packet
+    /// has yet to try it.
+    last_occluder: Option<Occluder>,
+    try_occluder: bool,
 }
 
 impl<const N: usize, const BW: u32> PacketJob<N, BW> {
@@ -151,6 +156,8 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
             normals: [Vec3::Y; N],
             albedo: [Vec3::ZERO; N],
             mirror: [0.0; N],
+            last_occluder: None,
+            try_occluder: false,
         };
         job.start(ctx, rect, bx, by);
         job
@@ -191,7 +198,17 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
                 Stage::Primary | Stage::Shadow | Stage::Reflect => {
                     let shadow = self.stage == Stage::Shadow;
                     let started = shadow.then(clock::ticks);
-                    let step = self.trav.run(&mut self.packet, ctx.top, source);
+                    // A new shadow packet first tries the triangle that
+                    // blocked the one before; where that blocks every
+                    // lane, it needs no traversal.
+                    let blocked =
+                        std::mem::take(&mut self.try_occluder) && self.try_last_occluder();
+                    let step = if blocked {
+                        stats.occluder_skips += 1;
+                        Step::Done
+                    } else {
+                        self.trav.run(&mut self.packet, ctx.top, source)
+                    };
                     if let Some(s) = started {
                         stats.shadow_ticks += clock::ticks().saturating_sub(s);
                     }
@@ -205,6 +222,10 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
                             self.primary_done(ctx, out, stats);
                         }
                         Stage::Shadow => {
+                            stats.shadow_packets += 1;
+                            if !blocked {
+                                self.remember_occluder(source);
+                            }
                             self.trav.reset();
                             self.shadow_done(ctx, out, stats);
                         }
@@ -228,6 +249,7 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
                         self.packet =
                             Packet::new(&self.points, &[ctx.light; N], ctx.eps, f32::INFINITY);
                         self.packet.any_hit = true;
+                        self.try_occluder = ctx.settings.occluder_cache;
                         for i in 0..N {
                             // Lanes without a surface to light take no part.
                             if self.weight[i] == 0.0 {
@@ -241,6 +263,37 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
                 }
                 Stage::Done => return Step::Done,
             }
+        }
+    }
+
+    /// Blocks the shadow packet's lanes that the last occluder blocks;
+    /// whether that blocked every lane. A try that blocks nothing costs
+    /// about one triangle test. Resting a few packets after such a try
+    /// made the views where it seldom blocks anything no faster, and the
+    /// living room slower (61 and 48 Mrays/s for one and three packets'
+    /// rest, against 69).
+    #[inline(always)]
+    fn try_last_occluder(&mut self) -> bool {
+        self.last_occluder
+            .as_ref()
+            .is_some_and(|o| self.packet.occlude_with(o))
+    }
+
+    /// Keeps the triangle that blocked the first blocked lane of the shadow
+    /// packet just traced, for the next ones to try first. Looked up here,
+    /// once a packet, rather than recorded in the traversal's leaves: that
+    /// slowed every packet's triangle loop, primary ones too.
+    #[inline(always)]
+    fn remember_occluder(&mut self, source: &dyn VoxelSource) {
+        let p = &self.packet;
+        let Some(i) = (0..N).find(|&i| p.occluded(i) && p.voxel[i] != u32::MAX) else {
+            return;
+        };
+        if let Some(vox) = source.voxel(p.voxel[i]) {
+            self.last_occluder = Some(Occluder {
+                corners: vox.corners[p.tri[i] as usize],
+                id: p.id[i],
+            });
         }
     }
 

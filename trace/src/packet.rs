@@ -44,7 +44,12 @@ enum Sign {
 }
 
 /// N rays and what they found.
+///
+/// Aligned to cache lines, so that each lane array of a 16-lane packet
+/// is one AVX-512 register's load, never split across two lines: primary
+/// rays 1-11 % faster than unaligned (Igea the most).
 #[derive(Clone, Debug)]
+#[repr(align(64))]
 pub struct Packet<const N: usize> {
     /// Origins and directions, per axis.
     pub org: [[f32; N]; 3],
@@ -74,6 +79,14 @@ pub struct Packet<const N: usize> {
     pub count_lanes: bool,
     pub child_hits: u32,
     pub child_lanes: u32,
+}
+
+/// A triangle that blocked a shadow ray: its corners and ORIGINAL id
+/// (a shadow packet's lanes need nothing else of their hits).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Occluder {
+    pub corners: [[f32; 3]; 3],
+    pub id: u32,
 }
 
 impl<const N: usize> Packet<N> {
@@ -133,6 +146,33 @@ impl<const N: usize> Packet<N> {
             all &= self.t[i] == f32::NEG_INFINITY;
         }
         all
+    }
+
+    /// Blocks every lane of a shadow packet that `occluder` blocks,
+    /// before any traversal; whether every lane is now blocked.
+    ///
+    /// Neighbouring shadow rays are mostly blocked by the same triangle,
+    /// so a shadow packet first tries the one that blocked a lane of the
+    /// packet before. Whatever it blocks, traversal would have found
+    /// blocked too: it is a triangle of the model, tested and accepted
+    /// exactly as in a voxel's leaf, and a shadow ray's answer is only
+    /// whether something lies in `(tmin, inf)`. Where it blocks every
+    /// lane, the traversal is skipped.
+    #[inline(always)]
+    pub fn occlude_with(&mut self, occluder: &Occluder) -> bool {
+        let o = occluder;
+        // No voxel or voxel-local triangle: shadow lanes need neither.
+        match AnyShear::new(self) {
+            AnyShear::Uniform(s) => {
+                let (u, v, w, t) = s.test(self, &o.corners);
+                self.accept(&u, &v, &w, &t, o.id, u32::MAX, u32::MAX);
+            }
+            AnyShear::Mixed(s) => {
+                let (u, v, w, t) = s.test(self, &o.corners);
+                self.accept(&u, &v, &w, &t, o.id, u32::MAX, u32::MAX);
+            }
+        }
+        self.all_blocked()
     }
 
     pub fn hit(&self, lane: usize) -> bool {

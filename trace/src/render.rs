@@ -107,6 +107,10 @@ pub struct RenderSettings {
     pub voxel_colors: bool,
     /// Rays per packet, where the ISA offers a choice.
     pub packets: Packets,
+    /// Shadow packets first try the triangle that blocked a lane of the
+    /// packet before ([`crate::packet::Packet::occlude_with`]); the
+    /// answers are the same either way.
+    pub occluder_cache: bool,
 }
 
 /// Rays per packet on AVX-512: 16 (4×4 pixels) or 32 (8×4). Wide packets
@@ -191,6 +195,7 @@ impl RenderSettings {
             reflectance: 0.6,
             voxel_colors: false,
             packets: Packets::Auto,
+            occluder_cache: true,
         }
     }
 }
@@ -235,6 +240,10 @@ pub struct FrameStats {
     pub primary_rays: u64,
     pub shadow_rays: u64,
     pub occluded: u64,
+    /// Shadow packets traced, and those of them that the last occluder
+    /// blocked entirely, so that they skipped the traversal.
+    pub shadow_packets: u64,
+    pub occluder_skips: u64,
     pub reflection_rays: u64,
     pub hits: u64,
     pub seconds: f64,
@@ -368,6 +377,8 @@ fn merge(frame: &Mutex<Frame>, out: TileOut) {
     s.shadow_rays += out.stats.shadow_rays;
     s.reflection_rays += out.stats.reflection_rays;
     s.occluded += out.stats.occluded;
+    s.shadow_packets += out.stats.shadow_packets;
+    s.occluder_skips += out.stats.occluder_skips;
     s.hits += out.stats.hits;
     s.shadow_ticks += out.stats.shadow_ticks;
     s.voxels_visited += out.stats.voxels_visited;

@@ -7,7 +7,7 @@ use common::{cameras, isas, plant, settings, shared_model, Model};
 use dray_scene::geometry::{closer, intersect_triangle, Hit, Ray};
 use dray_scene::rng::Rng;
 use dray_trace::camera::Camera;
-use dray_trace::packet::{Packet, Step, Traversal};
+use dray_trace::packet::{Occluder, Packet, Step, Traversal};
 use dray_trace::render::{render, Frame, Isa, Packets, RenderSettings};
 use dray_trace::scene::{ResidentSource, VoxelRef, VoxelSource};
 use glam::Vec3;
@@ -238,6 +238,79 @@ fn any_hit_packets_equal_brute_force() {
     assert!(
         occluded > 100 && occluded < 2300,
         "{occluded} of 2400 occluded"
+    );
+}
+
+/// A shadow packet that first tries a triangle (`occlude_with`) and is
+/// traversed only if lanes remain still agrees with brute force lane by
+/// lane, whatever the triangle: the occluder of a neighbouring packet
+/// (which often blocks every lane), or any triangle of the model (which
+/// may lie behind the origins, or beside the rays).
+#[test]
+fn shadow_packets_trying_an_occluder_first_equal_brute_force() {
+    let m = plant(20_000);
+    let b = m.db.manifest.model_bounds;
+    let tmin = 1e-4 * b.diagonal();
+    let mut rng = Rng::new(11);
+    let (mut occluded, mut skipped) = (0, 0);
+    for _ in 0..150 {
+        let base = Vec3::new(
+            rng.range(b.min[0], b.max[0]),
+            rng.range(b.min[1], b.max[1]),
+            rng.range(b.min[2], b.max[2]),
+        );
+        let light = Vec3::new(rng.range(-1.0, 1.0), 1.0, rng.range(-1.0, 1.0)).normalize();
+        let mut last: Option<Occluder> = None;
+        // Two neighbouring packets: the second tries the first's occluder.
+        for _ in 0..2 {
+            let mut origins = [Vec3::ZERO; 8];
+            for o in &mut origins {
+                *o = base + Vec3::new(rng.range(-0.5, 0.5), 0.0, rng.range(-0.5, 0.5));
+            }
+            let mut packet = Packet::<8>::new(&origins, &[light; 8], tmin, f32::INFINITY);
+            packet.any_hit = true;
+            let any = rng.below(m.tris.len() as u32) as usize;
+            let candidates = [
+                last,
+                Some(Occluder {
+                    corners: m.tris[any].map(|c| c.to_array()),
+                    id: any as u32,
+                }),
+            ];
+            let mut all = false;
+            for o in candidates.iter().flatten() {
+                all |= packet.occlude_with(o);
+            }
+            if all {
+                skipped += 1;
+            } else {
+                let mut trav = Traversal::<8>::default();
+                assert_eq!(trav.run(&mut packet, &m.top, &m.source), Step::Done);
+            }
+            for (i, &origin) in origins.iter().enumerate() {
+                let ray = Ray { origin, dir: light };
+                let blocked = m
+                    .tris
+                    .iter()
+                    .any(|p| intersect_triangle(&ray, p, tmin, f32::INFINITY).is_some());
+                assert_eq!(packet.occluded(i), blocked, "lane {i} of {ray:?}");
+                occluded += blocked as usize;
+            }
+            // The next packet tries what blocked this one's first blocked
+            // lane (as the renderer does).
+            if let Some(i) = (0..8).find(|&i| packet.occluded(i) && packet.voxel[i] != u32::MAX) {
+                let vox = m.source.voxel(packet.voxel[i]).unwrap();
+                last = Some(Occluder {
+                    corners: vox.corners[packet.tri[i] as usize],
+                    id: packet.id[i],
+                });
+            }
+        }
+    }
+    assert!(occluded > 100, "{occluded} of 2400 occluded");
+    assert!(
+        skipped > 5,
+        "only {skipped} packets blocked by an occluder alone"
     );
 }
 

@@ -390,6 +390,47 @@ async fn wide_packet_tiles_equal_the_narrow_frame() {
     }
 }
 
+/// Shadow packets that first try the triangle that blocked the packet
+/// before change no pixel: frames with and without it are identical for
+/// every instruction set, and so are tiles traced with it while voxels
+/// arrive in random order. The try does spare traversals.
+#[tokio::test(start_paused = true)]
+async fn trying_the_last_occluder_first_changes_no_pixel() {
+    let m = plant(20_000);
+    for isa in isas() {
+        let with = shaded(isa, &m);
+        let without = RenderSettings {
+            occluder_cache: false,
+            ..with.clone()
+        };
+        let mut skips = 0;
+        for (k, cam) in cameras(&m, 64, 48).iter().enumerate() {
+            let a = reference(&m, cam, &without);
+            let b = reference(&m, cam, &with);
+            let what = format!("{isa:?} camera {k}");
+            assert_eq!(a.rgba, b.rgba, "{what}: colors");
+            assert_eq!(a.stats.occluded, b.stats.occluded, "{what}");
+            assert_eq!(a.stats.shadow_packets, b.stats.shadow_packets, "{what}");
+            assert_eq!(a.stats.occluder_skips, 0, "{what}");
+            skips += b.stats.occluder_skips;
+            let rects = grid(cam, 16, 8, 5, 3);
+            let loader = TinyCache::new(&m.source, 3, 5 + k as u64);
+            check_rects(
+                &m,
+                &loader,
+                cam,
+                &with,
+                &a,
+                &rects,
+                MissMode::Suspend,
+                &format!("{what} tiles"),
+            )
+            .await;
+        }
+        assert!(skips > 0, "{isa:?}: no shadow packet skipped its traversal");
+    }
+}
+
 /// Tile statistics: rays counted once per pixel, one request per voxel
 /// at a time, every voxel touched loaded.
 #[tokio::test(start_paused = true)]
