@@ -338,6 +338,7 @@ impl<const N: usize> Packet<N> {
                     prefetch(p);
                     prefetch(p.wrapping_add(64));
                     prefetch(p.wrapping_add(128));
+                    prefetch(p.wrapping_add(143));
                     prefetch(vox.ids.as_ptr().wrapping_add(first) as *const u8);
                 }
             }
