@@ -360,8 +360,20 @@ impl Cluster {
 
 #[tokio::test(start_paused = true)]
 async fn scheduler_assigns_every_tile_once_and_double_buffers() {
+    assigns_every_tile_once_and_double_buffers(false).await;
+}
+
+/// The same with affinity, where a client that has run through its own
+/// tiles of a frame may release the next one early (and work ahead on its
+/// own tiles there).
+#[tokio::test(start_paused = true)]
+async fn scheduler_with_affinity_assigns_every_tile_once_and_double_buffers() {
+    assigns_every_tile_once_and_double_buffers(true).await;
+}
+
+async fn assigns_every_tile_once_and_double_buffers(affinity: bool) {
     let mut c = cluster(
-        options(true, Duration::from_secs(60)),
+        options(affinity, Duration::from_secs(60)),
         W,
         H,
         &[Behaviour::normal(), Behaviour::normal()],
@@ -439,7 +451,7 @@ async fn scheduler_assigns_every_tile_once_and_double_buffers() {
             k + 1
         );
         assert!(
-            last_assign < first_next,
+            affinity || last_assign < first_next,
             "frame {} started before frame {k} was fully assigned",
             k + 1
         );
@@ -801,6 +813,73 @@ async fn scheduler_affinity_gives_each_client_a_compact_region() {
         }
         c.stop().await;
     }
+}
+
+/// Walking towards what it shows, the camera sees content stream outward
+/// from the image's centre; each client keeps a sector around the centre,
+/// so the content keeps its client on its way out. Tiles along a line out
+/// of the centre share their client, and a tile goes to the client that
+/// had, a frame before, the tile its content came from.
+#[tokio::test(start_paused = true)]
+async fn scheduler_affinity_gives_clients_sectors_while_the_camera_walks_forward() {
+    let four = [(); 4].map(|_| Behaviour {
+        plane_hits: true,
+        ..Behaviour::normal()
+    });
+    let (w, h) = (640, 480);
+    let grid = TileGrid::new(w, h, 32);
+    let mut c = cluster(options(true, Duration::from_secs(60)), w, h, &four);
+    // The plane z = 0, from 10 down to 6.5 away.
+    let dist = |k: u64| 10.0 - 0.7 * k as f32;
+    for k in 0..6u64 {
+        let camera = Camera {
+            eye: [0.0, 0.0, dist(k)],
+            look: [0.0, 0.0, 0.0],
+            up: [0.0, 1.0, 0.0],
+            fov_y_deg: 50.0,
+        };
+        c.send_camera(k, camera).await;
+        assert_eq!(c.frame_done().await.frame, k);
+    }
+    let (cx, cy) = (w as f32 / 2.0, h as f32 / 2.0);
+    let centre = |i: usize| {
+        let r = grid.rect(i);
+        (r.x as f32 + r.w as f32 / 2.0, r.y as f32 + r.h as f32 / 2.0)
+    };
+    for k in 2..6 {
+        let (a, b) = (c.assignments_in(k - 1, &grid), c.assignments_in(k, &grid));
+        let (mut radial, mut radial_all, mut kept, mut kept_all) = (0, 0, 0, 0);
+        for (&i, owner) in &b {
+            let (x, y) = centre(i);
+            // Twice as far out along the same line.
+            if let Some(j) =
+                grid.tile_at((cx + 2.0 * (x - cx)) as u32, (cy + 2.0 * (y - cy)) as u32)
+            {
+                radial_all += 1;
+                radial += usize::from(b[&j][0] == owner[0]);
+            }
+            // Where this tile's content was a frame before.
+            let s = dist(k) / dist(k - 1);
+            let j = grid
+                .tile_at((cx + (x - cx) * s) as u32, (cy + (y - cy) * s) as u32)
+                .unwrap();
+            kept_all += 1;
+            kept += usize::from(a[&j][0] == owner[0]);
+        }
+        let (radial, kept) = (
+            radial as f64 / radial_all as f64,
+            kept as f64 / kept_all as f64,
+        );
+        assert!(
+            radial >= 0.85,
+            "frame {k}: {radial} of radial neighbours share their client"
+        );
+        assert!(
+            kept >= 0.8,
+            "frame {k}: {kept} of the tiles follow their content"
+        );
+    }
+    c.stop().await;
 }
 
 #[tokio::test(start_paused = true)]

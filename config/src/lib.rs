@@ -233,7 +233,11 @@ fn default_tile() -> u32 {
 pub struct SchedulerConfig {
     /// `host:port` it listens on (QUIC, UDP).
     pub address: String,
-    /// Give a tile preferably to the client that rendered it last frame.
+    /// Give a tile preferably to the client whose cache holds what it
+    /// shows: while the camera travels the way it looks, the client whose
+    /// sector around the image's centre it lies in (content streams
+    /// outward along the sectors); else the client that rendered what the
+    /// tile shows now in the last frame (reprojection).
     #[serde(default = "yes")]
     pub affinity: bool,
     /// Hand out the costliest tiles (by last frame's time) first.

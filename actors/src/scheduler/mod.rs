@@ -9,11 +9,13 @@
 //!   frames are outstanding in all is the display's `frames_ahead`).
 //! - [`run_scheduler`]: cuts each frame into [`TileGrid`] tiles and gives
 //!   them to clients as they ask ([`RequestWork`] credits), oldest frame
-//!   first. With affinity a client gets first the tiles that show what it
-//!   rendered in the last completed frame (its hit samples reprojected
-//!   into the new camera; costliest first by that frame's times), then the
-//!   tiles of others that show most of its content or border its region;
-//!   without, a random tile. Tiles of a lost client, or outstanding past
+//!   first. With affinity a client gets first its own tiles: while the
+//!   image streams from a point in view (the camera travels roughly the
+//!   way it looks), those of its sector around the image's centre, else
+//!   those that show what it rendered in the last completed frame (its
+//!   hit samples reprojected into the new camera); costliest first by that
+//!   frame's times. Then the tiles of others that show most of its content
+//!   or border its region; without affinity, a random tile. Tiles of a lost client, or outstanding past
 //!   `max(tile_deadline, 8 × median tile time)`, go to another client (the
 //!   first report wins). A complete frame yields [`FrameDone`] for the
 //!   display and [`TileOwners`] for the prefetcher.
@@ -34,6 +36,7 @@ mod assigner;
 mod prefetch;
 mod reproject;
 mod sched;
+mod sectors;
 mod tiles;
 
 pub use assigner::{run_assigner, AssignerOptions, MAX_QUEUED_FRAMES};

@@ -1,0 +1,183 @@
+//! Sector affinity: while the camera travels, what it shows streams along
+//! lines through the focus of expansion, the point the motion heads for
+//! as the image shows it. Walking forward, content comes into view near it
+//! and flows outward to the image's edges (walking back, the reverse;
+//! sideways, across the image along nearly parallel lines). Cut into one
+//! angular sector around the focus per client, the image keeps each piece
+//! of content in one client's sector for as long as it stays in view.
+//! Compact regions, even when they follow the content by reprojection,
+//! hand it on from region to region as it crosses them, and every client
+//! on its way fetches it.
+//!
+//! The focus comes from the content itself: where the lines cross along
+//! which the previous frame's hit samples move into the new camera (as
+//! reprojection finds them). While it lies in view the scheduler cuts the
+//! sectors around the image's centre, which stays put as the focus
+//! drifts (see the scheduler's `sector_owners`).
+
+use super::tiles::TileGrid;
+
+/// The point the image streams from between two frames: the least-squares
+/// crossing of the lines along which `moves` (each a point's pixel position
+/// in the earlier frame and in the later one) carry the content. It is the
+/// focus of expansion when the camera travels, and the image's centre when
+/// it zooms. `None` where the lines are nearly parallel (the camera turns
+/// in place, or slides sideways: the content shifts as a whole and crosses
+/// any partition) or where nothing moved.
+pub fn flow_focus(moves: impl IntoIterator<Item = ((f32, f32), (f32, f32))>) -> Option<(f32, f32)> {
+    // Sum over the lines of n nᵀ and n (n · p), n the line's unit normal,
+    // each weighted by how far its point moved (a point that hardly moves
+    // has no reliable direction).
+    let (mut a, mut b, mut c, mut bx, mut by) = (0.0f64, 0.0f64, 0.0f64, 0.0f64, 0.0f64);
+    for ((x0, y0), (x1, y1)) in moves {
+        let (dx, dy) = (f64::from(x1 - x0), f64::from(y1 - y0));
+        let len = (dx * dx + dy * dy).sqrt();
+        if !len.is_finite() || len <= 1e-3 {
+            continue;
+        }
+        let (nx, ny) = (-dy / len, dx / len);
+        let w = len;
+        let d = nx * f64::from(x0) + ny * f64::from(y0);
+        a += w * nx * nx;
+        b += w * nx * ny;
+        c += w * ny * ny;
+        bx += w * nx * d;
+        by += w * ny * d;
+    }
+    // The smaller eigenvalue of [[a, b], [b, c]] against the larger: how
+    // far from parallel the lines are.
+    let tr = a + c;
+    let det = a * c - b * b;
+    let disc = (tr * tr / 4.0 - det).max(0.0).sqrt();
+    let (lo, hi) = (tr / 2.0 - disc, tr / 2.0 + disc);
+    if !hi.is_finite() || hi <= 0.0 || lo < 0.05 * hi {
+        return None;
+    }
+    let fx = (c * bx - b * by) / det;
+    let fy = (a * by - b * bx) / det;
+    (fx.is_finite() && fy.is_finite()).then_some((fx as f32, fy as f32))
+}
+
+/// Per tile of `grid`, its sector (`0..k`) around `focus`: the tiles in
+/// order of the angle of their centres around it, counterclockwise from
+/// the left, cut into `k` runs of as many tiles each as can be.
+pub fn sectors(grid: &TileGrid, focus: (f32, f32), k: usize) -> Vec<usize> {
+    let n = grid.count();
+    let k = k.max(1);
+    let mut order: Vec<(f32, usize)> = (0..n)
+        .map(|i| {
+            let r = grid.rect(i);
+            let dx = r.x as f32 + r.w as f32 / 2.0 - focus.0;
+            let dy = r.y as f32 + r.h as f32 / 2.0 - focus.1;
+            (dy.atan2(dx), i)
+        })
+        .collect();
+    order.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+    let mut sector = vec![0; n];
+    for (rank, &(_, i)) in order.iter().enumerate() {
+        sector[i] = rank * k / n.max(1);
+    }
+    sector
+}
+
+/// Which of `clients` gets each sector of `sectors` (tile by tile): the
+/// clients in their order round the sectors, turned so that the most
+/// tiles stay with the client that had them before (`before`, per tile),
+/// and the sectors keep their clients while the focus drifts.
+pub fn owners<'c, N: PartialEq>(
+    sectors: &[usize],
+    clients: &'c [N],
+    before: &[Option<N>],
+) -> Vec<&'c N> {
+    let k = clients.len();
+    let kept = |turn: usize| {
+        sectors
+            .iter()
+            .zip(before)
+            .filter(|(&s, b)| b.as_ref() == Some(&clients[(s + turn) % k]))
+            .count()
+    };
+    let turn = (0..k)
+        .max_by_key(|&t| (kept(t), std::cmp::Reverse(t)))
+        .unwrap_or(0);
+    sectors.iter().map(|&s| &clients[(s + turn) % k]).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_focus_is_where_the_image_streams_from() {
+        // Content streaming out of (400, 200), as walking towards it.
+        let pts = [
+            (100.0, 100.0),
+            (600.0, 50.0),
+            (500.0, 450.0),
+            (50.0, 400.0),
+            (300.0, 300.0),
+        ];
+        let out = pts.map(|(x, y): (f32, f32)| {
+            (
+                (x, y),
+                (400.0 + (x - 400.0) * 1.1, 200.0 + (y - 200.0) * 1.1),
+            )
+        });
+        let (x, y) = flow_focus(out).unwrap();
+        assert!(
+            (x - 400.0).abs() < 0.1 && (y - 200.0).abs() < 0.1,
+            "{x} {y}"
+        );
+        // Streaming in (walking back): the same point.
+        let back = out.map(|(p, q)| (q, p));
+        let (x, y) = flow_focus(back).unwrap();
+        assert!(
+            (x - 400.0).abs() < 0.1 && (y - 200.0).abs() < 0.1,
+            "{x} {y}"
+        );
+        // Everything shifting left (turning in place), or nothing moving.
+        let shift = pts.map(|(x, y)| ((x, y), (x - 20.0, y + 0.5)));
+        assert_eq!(flow_focus(shift), None);
+        assert_eq!(flow_focus(pts.map(|p| (p, p))), None);
+    }
+
+    #[test]
+    fn sectors_are_even_and_run_outward_from_the_focus() {
+        let grid = TileGrid::new(640, 480, 32);
+        for k in [1, 2, 3, 4, 7] {
+            let s = sectors(&grid, (320.0, 240.0), k);
+            let mut sizes = vec![0; k];
+            for &x in &s {
+                sizes[x] += 1;
+            }
+            let (lo, hi) = (sizes.iter().min().unwrap(), sizes.iter().max().unwrap());
+            assert!(hi - lo <= 1, "k {k}: {sizes:?}");
+        }
+        // Tiles along one line out of the focus share their sector.
+        let s = sectors(&grid, (320.0, 240.0), 4);
+        let along: Vec<usize> = (0..9)
+            .map(|j| s[grid.tile_at(336 + 32 * j, 256 + 24 * j).unwrap()])
+            .collect();
+        assert!(along.iter().all(|&x| x == along[0]), "{along:?}");
+    }
+
+    #[test]
+    fn sectors_keep_their_clients() {
+        let grid = TileGrid::new(640, 480, 32);
+        let clients = ["a", "b", "c", "d"];
+        let first = sectors(&grid, (320.0, 240.0), 4);
+        let was: Vec<Option<&str>> = first.iter().map(|&s| Some(clients[(s + 2) % 4])).collect();
+        // The same sectors go to the same clients, whatever their order.
+        let again = owners(&first, &clients, &was);
+        assert!(again.iter().zip(&was).all(|(n, w)| Some(**n) == *w));
+        // The centre moves a little: most tiles keep their client.
+        let next = sectors(&grid, (330.0, 250.0), 4);
+        let now = owners(&next, &clients, &was);
+        let kept = now
+            .iter()
+            .zip(&was)
+            .filter(|(n, w)| Some(***n) == **w)
+            .count();
+        assert!(kept * 5 > grid.count() * 4, "{kept} of {}", grid.count());
+    }
+}
