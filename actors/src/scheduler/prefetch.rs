@@ -68,6 +68,10 @@ pub fn plans_frame(quiet: u32, next: u64) -> bool {
 /// How long a store has to answer [`FetchManifest`] before the next is asked.
 const MANIFEST_TIMEOUT: Duration = Duration::from_secs(2);
 
+/// Cameras kept to find the one of the frame whose tile owners arrive
+/// (the display runs a few frames ahead of the last completed one).
+const RECENT_CAMERAS: usize = 16;
+
 /// The camera of frame `next` predicted from the last one or two: eye and
 /// look point extrapolated linearly (per frame number), the rest as the
 /// latest. Falls back to the latest camera when the extrapolation is not a
@@ -95,11 +99,48 @@ pub fn predict_camera(prev: Option<(u64, &Camera)>, last: (u64, &Camera), next: 
 }
 
 /// Per tile of `grid` seen through `camera`, the index (in `owners`'
-/// clients) of the client whose content of the `owners` frame lands in it
-/// most, else the tile's owner then (u32::MAX: none), as the scheduler
-/// assigns tiles.
-fn recipients(owners: &TileOwners, camera: &Camera, grid: &super::tiles::TileGrid) -> Vec<u32> {
+/// clients) of the client the scheduler will give it, as it assigns tiles:
+/// by sectors while the image streams from a point in view (when the
+/// `owners` frame's camera, `then`, is known), else the client whose
+/// content of the `owners` frame lands in it most, else the tile's owner
+/// then (u32::MAX: none).
+fn recipients(
+    owners: &TileOwners,
+    then: Option<&Camera>,
+    camera: &Camera,
+    grid: &super::tiles::TileGrid,
+) -> Vec<u32> {
     let basis = kernel_camera(camera, owners.width, owners.height).basis();
+    if let Some(then) = then {
+        let clients = owners.clients.as_slice();
+        let before: Vec<Option<&Name>> = (0..grid.count())
+            .map(|t| {
+                owners
+                    .owners
+                    .0
+                    .get(t)
+                    .and_then(|&c| clients.get(c as usize))
+            })
+            .collect();
+        let hits = owners
+            .hits
+            .0
+            .chunks_exact(3)
+            .map(|p| Vec3::new(p[0], p[1], p[2]))
+            .filter(|p| p.is_finite());
+        let then = kernel_camera(then, owners.width, owners.height).basis();
+        if let Some(by) = super::sectors::assign(grid, &then, &basis, hits, &before) {
+            return by
+                .into_iter()
+                .map(|n| {
+                    clients
+                        .iter()
+                        .position(|c| c == n)
+                        .map_or(u32::MAX, |i| i as u32)
+                })
+                .collect();
+        }
+    }
     let mut samples = Vec::new();
     let mut at = 0;
     for (&n, &c) in owners.hit_counts.0.iter().zip(&owners.owners.0) {
@@ -125,23 +166,24 @@ fn recipients(owners: &TileOwners, camera: &Camera, grid: &super::tiles::TileGri
 /// Per client node, the voxels its tiles of `camera` will probably enter,
 /// most urgent first (nearest along the rays, then most often), at most
 /// [`MAX_PREFETCH_IDS`]. Sample pixels are the centre pixels of each
-/// `step` × `step` block; each goes to the client the scheduler will
-/// probably give its tile: the one whose content of the `owners` frame
-/// lands there most, else the tile's owner in that frame (tiles of
-/// neither are skipped).
+/// `step` × `step` block of a `width` × `height` image; each goes to the
+/// client the scheduler will probably give its tile: by sectors while the
+/// image streams from a point in view (`owners_camera` is the `owners`
+/// frame's camera, if known), else the one whose content of the `owners`
+/// frame lands there most, else the tile's owner in that frame (tiles of
+/// none are skipped).
 pub fn plan_hints(
     top: &TopLevel,
-    owners: &TileOwners,
+    (owners, owners_camera): (&TileOwners, Option<&Camera>),
     camera: &Camera,
-    width: u32,
-    height: u32,
+    (width, height): (u32, u32),
     step: u32,
     voxels_per_ray: u32,
 ) -> Vec<(Name, Vec<u32>)> {
     let step = step.max(1);
     let basis = kernel_camera(camera, width, height).basis();
     let grid = super::tiles::TileGrid::new(owners.width, owners.height, owners.tile_size);
-    let recipients = recipients(owners, camera, &grid);
+    let recipients = recipients(owners, owners_camera, camera, &grid);
     let clients = owners.clients.as_slice();
     // Per client: voxel → (nearest rank along a ray, how many rays).
     let mut seen: Vec<HashMap<u32, (u32, u32)>> = vec![HashMap::new(); clients.len()];
@@ -192,8 +234,12 @@ struct Prefetcher {
     opts: PrefetcherOptions,
     top: Option<Arc<TopLevel>>,
     owners: Option<TileOwners>,
+    /// The camera of the `owners` frame, if it is among the recent ones.
+    owners_camera: Option<Camera>,
     /// The last two cameras, oldest first.
     cams: Vec<(u64, Camera)>,
+    /// The recent cameras, oldest first, at most [`RECENT_CAMERAS`].
+    recent: std::collections::VecDeque<(u64, Camera)>,
     hinted_for: Option<u64>,
     /// Completed frames in a row without a miss.
     quiet: u32,
@@ -225,11 +271,18 @@ impl Prefetcher {
         }
         // Thousands of rays through the BSP: on the blocking pool, not on
         // the scheduler node's only thread, which hands out the tiles.
-        let (top, owners) = (top.clone(), owners.clone());
+        let (top, owners, then) = (top.clone(), owners.clone(), self.owners_camera);
         let o = &self.opts;
         let (w, h, step, per_ray) = (o.width, o.height, o.step, o.voxels_per_ray);
         let planned = tokio::task::spawn_blocking(move || {
-            plan_hints(&top, &owners, &camera, w, h, step, per_ray)
+            plan_hints(
+                &top,
+                (&owners, then.as_ref()),
+                &camera,
+                (w, h),
+                step,
+                per_ray,
+            )
         })
         .await;
         let plan = match planned {
@@ -271,6 +324,8 @@ pub async fn run_prefetcher(
         top: None,
         owners: None,
         cams: Vec::new(),
+        recent: std::collections::VecDeque::new(),
+        owners_camera: None,
         hinted_for: None,
         quiet: 0,
         summary: PrefetcherSummary::default(),
@@ -299,11 +354,17 @@ pub async fn run_prefetcher(
                     Message::TileOwners(o) => {
                         if p.owners.as_ref().is_none_or(|old| old.frame < o.frame) {
                             p.quiet = if o.misses == 0 { p.quiet.saturating_add(1) } else { 0 };
+                            p.owners_camera =
+                                p.recent.iter().find(|(s, _)| *s == o.frame).map(|(_, c)| *c);
                             p.owners = Some(o);
                         }
                     }
                     Message::CameraUpdate(u) => {
                         if p.cams.last().is_none_or(|(s, _)| *s < u.seq) {
+                            p.recent.push_back((u.seq, u.camera));
+                            if p.recent.len() > RECENT_CAMERAS {
+                                p.recent.pop_front();
+                            }
                             p.cams.push((u.seq, u.camera));
                             if p.cams.len() > 2 {
                                 p.cams.remove(0);
@@ -394,6 +455,76 @@ mod tests {
         };
         let grid = super::super::tiles::TileGrid::new(64, 64, 32);
         // Tiles where nothing lands keep their owner (or none).
-        assert_eq!(recipients(&owners, &camera, &grid), vec![0, u32::MAX, 1, 0]);
+        assert_eq!(
+            recipients(&owners, None, &camera, &grid),
+            vec![0, u32::MAX, 1, 0]
+        );
+    }
+
+    #[test]
+    fn hints_go_by_sectors_while_the_camera_walks_forward() {
+        let at = |z: f32| Camera {
+            eye: [0.0, 0.0, z],
+            look: [0.0, 0.0, 0.0],
+            up: [0.0, 1.0, 0.0],
+            fov_y_deg: 50.0,
+        };
+        let (then, now) = (at(6.0), at(5.0));
+        let b = kernel_camera(&then, 64, 64).basis();
+        // Points on the plane z = 0 seen all over the earlier image.
+        let hits: Vec<f32> = [(8, 8), (56, 8), (8, 56), (56, 56), (20, 40), (44, 24)]
+            .iter()
+            .flat_map(|&(x, y)| {
+                (b.eye + b.direction(x, y) * 6.0 / b.direction(x, y).z.abs()).to_array()
+            })
+            .collect();
+        let owners = TileOwners {
+            frame: 1,
+            width: 64,
+            height: 64,
+            tile_size: 32,
+            // Left half client 1, right half client 0.
+            owners: PackedU32(vec![1, 0, 1, 0]),
+            clients: BoundedVec::new(vec![
+                Name::new("client-0").unwrap(),
+                Name::new("client-1").unwrap(),
+            ])
+            .unwrap(),
+            hit_counts: Blob(vec![2, 2, 1, 1]),
+            hits: PackedF32(hits),
+            misses: 0,
+        };
+        let grid = super::super::tiles::TileGrid::new(64, 64, 32);
+        // Two sectors around the centre, turned to keep the most tiles:
+        // what the scheduler will assign.
+        let before: Vec<Option<&Name>> = [1, 0, 1, 0]
+            .iter()
+            .map(|&c| owners.clients.as_slice().get(c))
+            .collect();
+        let n = super::super::tiles::TileGrid::new(64, 64, 32).count();
+        let tb = kernel_camera(&then, 64, 64).basis();
+        let nb = kernel_camera(&now, 64, 64).basis();
+        let points = owners
+            .hits
+            .0
+            .chunks_exact(3)
+            .map(|p| Vec3::new(p[0], p[1], p[2]));
+        let expected = super::super::sectors::assign(&grid, &tb, &nb, points, &before)
+            .expect("walking forward: sectors");
+        let expected: Vec<u32> = expected
+            .iter()
+            .map(|n| {
+                owners
+                    .clients
+                    .as_slice()
+                    .iter()
+                    .position(|c| c == *n)
+                    .unwrap() as u32
+            })
+            .collect();
+        assert_eq!(expected.len(), n);
+        assert_eq!(recipients(&owners, Some(&then), &now, &grid), expected);
+        // Without the earlier camera: reprojection, as before.
+        assert_ne!(recipients(&owners, None, &now, &grid), expected);
     }
 }

@@ -223,48 +223,21 @@ impl Frame {
 
     /// Each tile's client by sectors around the image's centre, among the
     /// clients that rendered `prev`, while the image streams from a point
-    /// in view between `prev` and this frame (by its hit samples' motion:
-    /// the camera travels roughly the way it looks); `None` otherwise, and
+    /// in view between `prev` and this frame (the camera travels roughly
+    /// the way it looks; see [`sectors::assign`]); `None` otherwise, and
     /// reprojection decides.
-    ///
-    /// The centre, not the point itself: on the bench's walk that point
-    /// drifts across a third of the image within a loop (the camera turns
-    /// as it walks), and sectors around it fetched 1.27-1.37 MB of voxels
-    /// a frame, against 0.75-0.80 around the centre (reprojection:
-    /// 1.12-1.18): sectors that stay put keep their content.
     fn sector_owners(&self, prev: &Previous) -> Option<Vec<Option<Name>>> {
         let now = kernel_camera(&self.camera, self.grid.width, self.grid.height).basis();
         let then = kernel_camera(&prev.camera, prev.grid.width, prev.grid.height).basis();
-        // Positions scaled to this frame's image when the size changed.
-        let (sx, sy) = (
-            self.grid.width as f32 / prev.grid.width as f32,
-            self.grid.height as f32 / prev.grid.height as f32,
-        );
-        let moves = prev.hits.iter().flatten().filter_map(|&p| {
-            let (x0, y0) = then.project(p)?;
-            Some(((x0 * sx, y0 * sy), now.project(p)?))
-        });
-        let (w, h) = (self.grid.width as f32, self.grid.height as f32);
-        let (x, y) = sectors::flow_focus(moves)?;
-        if !(0.0..=w).contains(&x) || !(0.0..=h).contains(&y) {
-            return None;
-        }
-        let focus = (w / 2.0, h / 2.0);
-        let mut clients: Vec<&Name> = prev.owners.iter().flatten().collect();
-        clients.sort();
-        clients.dedup();
-        if clients.is_empty() {
-            return None;
-        }
-        let sector = sectors::sectors(&self.grid, focus, clients.len());
         // Who had each tile before, on the same grid.
-        let before: Vec<Option<&Name>> = if prev.grid == self.grid {
-            prev.owners.iter().map(|o| o.as_ref()).collect()
+        let before: Vec<Option<Name>> = if prev.grid == self.grid {
+            prev.owners.clone()
         } else {
             vec![None; self.tiles.len()]
         };
-        let owners = sectors::owners(&sector, &clients, &before);
-        Some(owners.into_iter().map(|n| Some((*n).clone())).collect())
+        let hits = prev.hits.iter().flatten().copied();
+        let owners = sectors::assign(&self.grid, &then, &now, hits, &before)?;
+        Some(owners.into_iter().map(Some).collect())
     }
 
     /// Sorts the fresh tiles into queues: per affinity client when

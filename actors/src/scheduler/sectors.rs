@@ -16,6 +16,50 @@
 //! drifts (see the scheduler's `sector_owners`).
 
 use super::tiles::TileGrid;
+use dray_trace::camera::CameraBasis;
+use glam::Vec3;
+
+/// Each tile's client by sectors, between a frame seen through `then` and
+/// one seen through `now` (on `grid`): when the image streams from a
+/// point in view (by where the earlier frame's `hits` land in each), one
+/// sector around the image's centre per client that had a tile before
+/// (`before`, per tile; clients in their order), turned to keep the most
+/// tiles with them. `None` when the content shifts as a whole or does not
+/// move (reprojection then decides), or nobody had a tile.
+///
+/// Around the centre, not around that point: on the bench's walk the
+/// point drifts across a third of the image within a loop (the camera
+/// turns as it walks), and sectors around it fetched 1.27-1.37 MB of
+/// voxels a frame, against 0.75-0.80 around the centre (reprojected
+/// regions: 1.12-1.18). Sectors that stay put keep their content.
+pub fn assign<N: Ord + Clone>(
+    grid: &TileGrid,
+    then: &CameraBasis,
+    now: &CameraBasis,
+    hits: impl IntoIterator<Item = Vec3>,
+    before: &[Option<N>],
+) -> Option<Vec<N>> {
+    // Positions scaled to `now`'s image when the size changed.
+    let (sx, sy) = (now.width / then.width, now.height / then.height);
+    let moves = hits.into_iter().filter_map(|p| {
+        let (x0, y0) = then.project(p)?;
+        Some(((x0 * sx, y0 * sy), now.project(p)?))
+    });
+    let (x, y) = flow_focus(moves)?;
+    if !(0.0..=now.width).contains(&x) || !(0.0..=now.height).contains(&y) {
+        return None;
+    }
+    let mut clients: Vec<&N> = before.iter().flatten().collect();
+    clients.sort();
+    clients.dedup();
+    if clients.is_empty() {
+        return None;
+    }
+    let sector = sectors(grid, (now.width / 2.0, now.height / 2.0), clients.len());
+    let before: Vec<Option<&N>> = before.iter().map(|b| b.as_ref()).collect();
+    let owners = owners(&sector, &clients, &before);
+    Some(owners.into_iter().map(|n| (*n).clone()).collect())
+}
 
 /// The point the image streams from between two frames: the least-squares
 /// crossing of the lines along which `moves` (each a point's pixel position
