@@ -260,9 +260,10 @@ impl Frame {
                 vec![Vec::new(); self.tiles.len()],
             ),
         };
-        // While the camera travels, the clients' sectors around where it
-        // heads instead (see `sectors`); reprojection when it turns in
-        // place. A client out of tiles still takes by the votes.
+        // While the image streams from a point in view (the camera travels
+        // the way it looks), the clients' sectors around the image's
+        // centre instead (see `sectors`). A client out of tiles still
+        // takes by the votes.
         if let Some(owners) = prev.and_then(|p| self.sector_owners(p)) {
             self.affine = owners;
         }
