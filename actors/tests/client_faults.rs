@@ -117,8 +117,10 @@ async fn corrupt_and_refused_voxels_are_fetched_again() {
         )
         .unwrap();
         let mb = client_bus.mailbox(name(names::CLIENT), 1024).unwrap();
-        let client = tokio::spawn(run_client(mb, options(mode)));
-        let out = render_frame(&mut fe, &db.db, &names::client(0), false).await;
+        let opts = options(mode);
+        let capacity = opts.threads + opts.tiles_ahead;
+        let client = tokio::spawn(run_client(mb, opts));
+        let out = render_frame(&mut fe, &db.db, &names::client(0), capacity, false).await;
         let summary = client.await.unwrap().unwrap();
         fe.scheduler
             .send(

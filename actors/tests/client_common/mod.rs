@@ -154,6 +154,8 @@ pub struct Assembled {
     pub depth: Vec<f32>,
     pub primid: Vec<u32>,
     pub max_outstanding: usize,
+    /// Tiles the client asked for in all.
+    pub requested: usize,
 }
 
 /// Hands out every 16×16 tile of a 96×64 frame on demand (as many as the
@@ -161,10 +163,18 @@ pub struct Assembled {
 /// tells the client to stop when every tile is in. With `hint`, sends
 /// the client a prefetch hint naming every voxel when it first asks for
 /// work.
+///
+/// A tile asked for is handed out only once `capacity` (the client's
+/// tiles in progress and ahead) allows it by the tiles whose pixels have
+/// arrived: the client sends a tile's pixels before it asks again, but
+/// they travel to the display's mailbox and may arrive after the request
+/// reaches the scheduler's (counting by arrival, a correct client
+/// sometimes seemed to hold one tile too many).
 pub async fn render_frame(
     fe: &mut FakeFrontEnd,
     db: &Database,
     client: &dray_protocol::Address,
+    capacity: usize,
     mut hint: bool,
 ) -> Assembled {
     let cam = camera(db);
@@ -187,13 +197,18 @@ pub async fn render_frame(
         depth: vec![f32::NAN; n],
         primid: vec![0xdead_beef; n],
         max_outstanding: 0,
+        requested: 0,
     };
+    // Asked for, handed out so far, and asked for but not yet allowed.
+    let (mut granted, mut pending) = (0usize, 0usize);
     let mut slots = 0usize;
     let mut outstanding = 0usize;
     let mut done = 0usize;
     let mut hit_samples = 0usize;
     let deadline = tokio::time::Instant::now() + Duration::from_secs(120);
     while done < total {
+        let allowed = (done + capacity).saturating_sub(granted).min(pending);
+        (slots, pending, granted) = (slots + allowed, pending - allowed, granted + allowed);
         while slots > 0 && !tiles.is_empty() {
             let tile = tiles.pop().unwrap();
             slots -= 1;
@@ -239,7 +254,8 @@ pub async fn render_frame(
                             .await
                             .unwrap();
                     }
-                    slots += r.slots as usize
+                    out.requested += r.slots as usize;
+                    pending += r.slots as usize;
                 }
                 Message::TileDone(t) => {
                     assert_eq!(t.frame, 7);
