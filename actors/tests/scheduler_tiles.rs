@@ -358,6 +358,14 @@ impl Cluster {
     }
 }
 
+/// Four clients whose tiles' hits lie on the plane z = 0.
+fn plane_clients() -> [Behaviour; 4] {
+    [(); 4].map(|_| Behaviour {
+        plane_hits: true,
+        ..Behaviour::normal()
+    })
+}
+
 #[tokio::test(start_paused = true)]
 async fn scheduler_assigns_every_tile_once_and_double_buffers() {
     assigns_every_tile_once_and_double_buffers(false).await;
@@ -822,10 +830,7 @@ async fn scheduler_affinity_gives_each_client_a_compact_region() {
 /// had, a frame before, the tile its content came from.
 #[tokio::test(start_paused = true)]
 async fn scheduler_affinity_gives_clients_sectors_while_the_camera_walks_forward() {
-    let four = [(); 4].map(|_| Behaviour {
-        plane_hits: true,
-        ..Behaviour::normal()
-    });
+    let four = plane_clients();
     let (w, h) = (640, 480);
     let grid = TileGrid::new(w, h, 32);
     let mut c = cluster(options(true, Duration::from_secs(60)), w, h, &four);
@@ -890,10 +895,7 @@ async fn scheduler_affinity_follows_content_that_moves_across_the_screen() {
     // rendered that (by screen position alone about 0.3 do). Some move
     // anyway: the clients whose content leaves the screen take tiles from
     // those whose content stays.
-    let four = [(); 4].map(|_| Behaviour {
-        plane_hits: true,
-        ..Behaviour::normal()
-    });
+    let four = plane_clients();
     let (w, h) = (640, 480);
     let grid = TileGrid::new(w, h, 32);
     let per_frame = 8.0 * 32.0 / h as f32 * 2.0 * 5.0 * 25f32.to_radians().tan();

@@ -196,6 +196,13 @@ fn suspension_in_random_order_gives_identical_hits() {
     }
 }
 
+/// Whether some triangle of the model lies on `ray` beyond `tmin`.
+fn blocked_by_brute_force(m: &Model, ray: &Ray, tmin: f32) -> bool {
+    m.tris
+        .iter()
+        .any(|p| intersect_triangle(ray, p, tmin, f32::INFINITY).is_some())
+}
+
 /// Shadow (any-hit) packets agree with brute force: a lane is occluded
 /// exactly when some triangle lies on its ray beyond `tmin`.
 #[test]
@@ -227,10 +234,7 @@ fn any_hit_packets_equal_brute_force() {
                 origin: origins[i],
                 dir: dirs[i],
             };
-            let blocked = m
-                .tris
-                .iter()
-                .any(|p| intersect_triangle(&ray, p, tmin, f32::INFINITY).is_some());
+            let blocked = blocked_by_brute_force(&m, &ray, tmin);
             assert_eq!(packet.occluded(i), blocked, "lane {i} of {ray:?}");
             occluded += blocked as usize;
         }
@@ -289,10 +293,7 @@ fn shadow_packets_trying_an_occluder_first_equal_brute_force() {
             }
             for (i, &origin) in origins.iter().enumerate() {
                 let ray = Ray { origin, dir: light };
-                let blocked = m
-                    .tris
-                    .iter()
-                    .any(|p| intersect_triangle(&ray, p, tmin, f32::INFINITY).is_some());
+                let blocked = blocked_by_brute_force(&m, &ray, tmin);
                 assert_eq!(packet.occluded(i), blocked, "lane {i} of {ray:?}");
                 occluded += blocked as usize;
             }

@@ -234,8 +234,8 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
     // that dies with pixels still queued has the tile reassigned instead of
     // lost), and it never sees more tiles asked for than the client holds.
     // A display slow to take tiles therefore slows the requests too, which
-    // also bounds the queue. Other control messages (the first request, pongs) go in
-    // their own.
+    // also bounds the queue. Other control messages (the first request,
+    // pongs) go in their own.
     let results = sender(me.clone(), "control message");
     let pixels = sender(me.clone(), "finished tile");
     let cache = Arc::new(VoxelCache::new(manifest.voxels.len(), opts.cache_bytes));

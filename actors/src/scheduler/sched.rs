@@ -230,14 +230,14 @@ impl Frame {
         let now = kernel_camera(&self.camera, self.grid.width, self.grid.height).basis();
         let then = kernel_camera(&prev.camera, prev.grid.width, prev.grid.height).basis();
         // Who had each tile before, on the same grid.
-        let before: Vec<Option<Name>> = if prev.grid == self.grid {
-            prev.owners.clone()
+        let before: Vec<Option<&Name>> = if prev.grid == self.grid {
+            prev.owners.iter().map(Option::as_ref).collect()
         } else {
             vec![None; self.tiles.len()]
         };
         let hits = prev.hits.iter().flatten().copied();
         let owners = sectors::assign(&self.grid, &then, &now, hits, &before)?;
-        Some(owners.into_iter().map(Some).collect())
+        Some(owners.into_iter().map(|n| Some(n.clone())).collect())
     }
 
     /// Sorts the fresh tiles into queues: per affinity client when

@@ -69,7 +69,7 @@ pub fn assign<N: Ord + Clone>(
 /// it zooms. `None` where the lines are nearly parallel (the camera turns
 /// in place, or slides sideways: the content shifts as a whole and crosses
 /// any partition) or where nothing moved.
-pub fn flow_focus(moves: impl IntoIterator<Item = ((f32, f32), (f32, f32))>) -> Option<(f32, f32)> {
+fn flow_focus(moves: impl IntoIterator<Item = ((f32, f32), (f32, f32))>) -> Option<(f32, f32)> {
     // Sum over the lines of n nᵀ and n (n · p), n the line's unit normal,
     // each weighted by how far its point moved (a point that hardly moves
     // has no reliable direction).
@@ -112,7 +112,7 @@ pub fn flow_focus(moves: impl IntoIterator<Item = ((f32, f32), (f32, f32))>) -> 
 /// 163-168), as the image's left and right show different parts of the
 /// model, while its top and bottom share the distant ones near the
 /// horizon.
-pub fn sectors(grid: &TileGrid, focus: (f32, f32), k: usize) -> Vec<usize> {
+fn sectors(grid: &TileGrid, focus: (f32, f32), k: usize) -> Vec<usize> {
     let n = grid.count();
     let k = k.max(1);
     let mut order: Vec<(f32, usize)> = (0..n)
@@ -122,15 +122,7 @@ pub fn sectors(grid: &TileGrid, focus: (f32, f32), k: usize) -> Vec<usize> {
             let dy = r.y as f32 + r.h as f32 / 2.0 - focus.1;
             // Angles from straight up, clockwise: two sectors are the
             // left and right halves.
-            let a = dx.atan2(-dy);
-            (
-                if a < 0.0 {
-                    a + std::f32::consts::TAU
-                } else {
-                    a
-                },
-                i,
-            )
+            (dx.atan2(-dy).rem_euclid(std::f32::consts::TAU), i)
         })
         .collect();
     order.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
@@ -145,7 +137,7 @@ pub fn sectors(grid: &TileGrid, focus: (f32, f32), k: usize) -> Vec<usize> {
 /// clients in their order round the sectors, turned so that the most
 /// tiles stay with the client that had them before (`before`, per tile),
 /// and the sectors keep their clients while the focus drifts.
-pub fn owners<'c, N: PartialEq>(
+fn owners<'c, N: PartialEq>(
     sectors: &[usize],
     clients: &'c [N],
     before: &[Option<N>],
