@@ -431,6 +431,37 @@ async fn trying_the_last_occluder_first_changes_no_pixel() {
     }
 }
 
+/// Only blocks with a surface to light trace a shadow packet: the model
+/// seen from outside traces some, the same camera turned round (nothing
+/// but sky) none, for every instruction set.
+#[test]
+fn blocks_without_a_surface_trace_no_shadow_packet() {
+    let m = plant(20_000);
+    for isa in isas() {
+        let s = shaded(isa, &m);
+        let cam = cameras(&m, 64, 48)[0];
+        let away = Camera {
+            look: cam.eye + (cam.eye - cam.look),
+            ..cam
+        };
+        let model = reference(&m, &cam, &s);
+        assert!(
+            model.stats.hits > 0 && model.stats.shadow_packets > 0,
+            "{isa:?}"
+        );
+        let sky = reference(&m, &away, &s);
+        assert_eq!(
+            sky.stats.hits, 0,
+            "{isa:?}: the turned camera sees the model"
+        );
+        assert_eq!(
+            sky.stats.shadow_packets, 0,
+            "{isa:?}: shadow packets under the sky"
+        );
+        assert_eq!(sky.stats.shadow_rays, 0, "{isa:?}");
+    }
+}
+
 /// Tile statistics: rays counted once per pixel, one request per voxel
 /// at a time, every voxel touched loaded.
 #[tokio::test(start_paused = true)]
