@@ -248,8 +248,8 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
                     // A block whose rays all left the model has no
                     // surface to light: no shadow packet at all. (From
                     // afar most blocks are sky; building, trying and
-                    // timing an empty packet cost a fifth of the far
-                    // plant views' shadow time.)
+                    // timing empty packets cost shaded frames from
+                    // outside 1-5 %.)
                     let lit_surfaces = self.weight.iter().any(|&w| w > 0.0);
                     if ctx.settings.shadows && lit_surfaces {
                         self.packet =
