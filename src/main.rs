@@ -787,8 +787,11 @@ fn render(a: &RenderArgs) -> Result<()> {
     if let Some(path) = &a.path {
         return render_path(a, path, &top, &source, &settings, load_seconds);
     }
-    let (frame, mut seconds) = render_repeated(&top, &source, &camera, &settings, a.repeat)
+    let passes = render_repeated(&top, &source, &camera, &settings, a.repeat)
         .map_err(|id| anyhow::anyhow!("voxel {id} was not loaded"))?;
+    let frame = passes.frame;
+    let mut seconds = passes.seconds;
+    let mut shadow_seconds = passes.shadow_seconds;
     if let Some(p) = &a.out {
         dray_trace::image::write_png(p, frame.width, frame.height, &frame.rgba)?;
     }
@@ -803,8 +806,13 @@ fn render(a: &RenderArgs) -> Result<()> {
     let rays = s.primary_rays + s.shadow_rays + s.reflection_rays;
     let best = rays as f64 / seconds[0] / 1e6;
     let median = rays as f64 / seconds[seconds.len() / 2] / 1e6;
-    let shadow_mrays = (s.shadow_seconds > 0.0)
-        .then(|| s.shadow_rays as f64 / (s.shadow_seconds / threads as f64) / 1e6);
+    // Shadow rays are timed on their own within each pass: best and
+    // median of the passes, as for all rays.
+    shadow_seconds.sort_by(f64::total_cmp);
+    let shadow_rate =
+        |secs: f64| (secs > 0.0).then(|| s.shadow_rays as f64 / (secs / threads as f64) / 1e6);
+    let shadow_mrays = shadow_rate(shadow_seconds[0]);
+    let shadow_mrays_median = shadow_rate(shadow_seconds[shadow_seconds.len() / 2]);
     let hit_fraction = s.hits as f64 / s.primary_rays.max(1) as f64;
     println!(
         "{}x{} on {threads} thread(s), {} packets of {} rays{}: {:.2} Mrays/s best, {:.2} median ({rays} rays{}), {:.1} % hit, {:.2} voxels entered per {} primary rays; loaded {} voxels ({} MiB) in {load_seconds:.2} s",
@@ -839,6 +847,7 @@ fn render(a: &RenderArgs) -> Result<()> {
             "shadow_rays": s.shadow_rays,
             "reflection_rays": s.reflection_rays,
             "shadow_mrays_per_s": shadow_mrays,
+            "shadow_mrays_per_s_median": shadow_mrays_median,
             "occluded_fraction": (s.shadow_rays > 0).then(|| s.occluded as f64 / s.shadow_rays as f64),
             "shadow_packets": s.shadow_packets,
             "occluder_skips": s.occluder_skips,

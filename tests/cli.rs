@@ -92,6 +92,8 @@ fn generate_preprocess_verify_info() {
         s(&pfm),
         "--primid-out",
         s(&ids),
+        "--repeat",
+        "3",
         "--json",
     ]);
     assert!(out.status.success(), "{}", text(&out));
@@ -105,6 +107,11 @@ fn generate_preprocess_verify_info() {
     assert_eq!(json["width"], 64);
     assert!(json["hit_fraction"].as_f64().unwrap() > 0.05, "{last}");
     assert!(json["shadow_rays"].as_u64().unwrap() > 0, "{last}");
+    // Shadow rays, like all rays, are reported by the best of the passes.
+    let best = json["shadow_mrays_per_s"].as_f64().unwrap();
+    let median = json["shadow_mrays_per_s_median"].as_f64().unwrap();
+    assert!(median > 0.0 && best >= median, "{last}");
+    assert_eq!(json["seconds"].as_array().unwrap().len(), 3, "{last}");
     assert!(std::fs::read(&png).unwrap().starts_with(b"\x89PNG"));
     assert_eq!(std::fs::metadata(&ids).unwrap().len(), 64 * 48 * 4);
     assert_eq!(

@@ -512,20 +512,39 @@ pub(crate) fn voxel_color(id: u32) -> Vec3 {
 
 pub(crate) const BACKGROUND: Vec3 = Vec3::new(0.094, 0.11, 0.14);
 
-/// Renders once untimed (warm-up), then `repeat` timed passes; returns the
-/// last frame and each timed pass's seconds.
+/// The timed passes of [`render_repeated`].
+#[derive(Clone, Debug)]
+pub struct Passes {
+    /// The last pass's frame.
+    pub frame: Frame,
+    /// Each pass's wall-clock seconds.
+    pub seconds: Vec<f64>,
+    /// Each pass's seconds in shadow packets, summed over the threads
+    /// ([`FrameStats::shadow_seconds`]).
+    pub shadow_seconds: Vec<f64>,
+}
+
+/// Renders once untimed (warm-up), then `repeat` timed passes. Every pass
+/// traces the same rays, so the best pass of each figure is as fair a
+/// measure as the yardstick's best of its passes.
 pub fn render_repeated(
     top: &TopLevel,
     source: &dyn VoxelSource,
     camera: &Camera,
     settings: &RenderSettings,
     repeat: usize,
-) -> Result<(Frame, Vec<f64>), u32> {
+) -> Result<Passes, u32> {
     let mut frame = render(top, source, camera, settings)?;
     let mut seconds = Vec::with_capacity(repeat);
+    let mut shadow_seconds = Vec::with_capacity(repeat);
     for _ in 0..repeat.max(1) {
         frame = render(top, source, camera, settings)?;
         seconds.push(frame.stats.seconds);
+        shadow_seconds.push(frame.stats.shadow_seconds);
     }
-    Ok((frame, seconds))
+    Ok(Passes {
+        frame,
+        seconds,
+        shadow_seconds,
+    })
 }
