@@ -748,8 +748,17 @@ impl<const N: usize> Traversal<N> {
                     axis, left, right, ..
                 } => {
                     // Near child on top: forward rays meet the left cell
-                    // first.
-                    if packet.dir[axis as usize][0] >= 0.0 {
+                    // first. A shadow packet (any hit will do) takes the
+                    // far child first instead: it starts on a surface, and
+                    // what blocks it is more often what encloses it (a
+                    // ceiling, a wall, the far side of a closed object)
+                    // than the clutter around where it starts. Living-room
+                    // shadows from inside 27 → 175 Mrays/s traversed alone
+                    // (55 → 300 with the occluder cache), Igea +18 %, the
+                    // bunny +5 %, the 1 M plant +2-3 %, inside the 12.5 M
+                    // plant -1 to -3 %.
+                    let left_first = packet.dir[axis as usize][0] >= 0.0;
+                    if left_first != packet.any_hit {
                         self.stack.push(right);
                         self.stack.push(left);
                     } else {

@@ -257,7 +257,7 @@ fn shadow_packets_trying_an_occluder_first_equal_brute_force() {
     let tmin = 1e-4 * b.diagonal();
     let mut rng = Rng::new(11);
     let (mut occluded, mut skipped) = (0, 0);
-    for _ in 0..150 {
+    for _ in 0..300 {
         let base = Vec3::new(
             rng.range(b.min[0], b.max[0]),
             rng.range(b.min[1], b.max[1]),
@@ -308,7 +308,7 @@ fn shadow_packets_trying_an_occluder_first_equal_brute_force() {
             }
         }
     }
-    assert!(occluded > 100, "{occluded} of 2400 occluded");
+    assert!(occluded > 100, "{occluded} of 4800 occluded");
     assert!(
         skipped > 5,
         "only {skipped} packets blocked by an occluder alone"
