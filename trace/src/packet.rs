@@ -163,14 +163,8 @@ impl<const N: usize> Packet<N> {
         let o = occluder;
         // No voxel or voxel-local triangle: shadow lanes need neither.
         match AnyShear::new(self) {
-            AnyShear::Uniform(s) => {
-                let (u, v, w, t) = s.test(self, &o.corners);
-                self.accept(&u, &v, &w, &t, o.id, u32::MAX, u32::MAX);
-            }
-            AnyShear::Mixed(s) => {
-                let (u, v, w, t) = s.test(self, &o.corners);
-                self.accept(&u, &v, &w, &t, o.id, u32::MAX, u32::MAX);
-            }
+            AnyShear::Uniform(s) => self.triangle(&s, &o.corners, o.id, u32::MAX, u32::MAX),
+            AnyShear::Mixed(s) => self.triangle(&s, &o.corners, o.id, u32::MAX, u32::MAX),
         }
         self.all_blocked()
     }
@@ -275,6 +269,22 @@ impl<const N: usize> Packet<N> {
         }
     }
 
+    /// Every lane against one triangle (`corners`, ORIGINAL id `id`,
+    /// voxel-local `tri` of voxel `voxel`): tested, and kept where it is
+    /// the better hit.
+    #[inline(always)]
+    fn triangle<S: TriangleTest<N>>(
+        &mut self,
+        shear: &S,
+        corners: &[[f32; 3]; 3],
+        id: u32,
+        voxel: u32,
+        tri: u32,
+    ) {
+        let (u, v, w, t) = shear.test(self, corners);
+        self.accept(&u, &v, &w, &t, id, voxel, tri);
+    }
+
     /// Nearest hits (or occlusion) of every lane in one voxel's BVH,
     /// searched only within each lane's interval `seg` (the lane's part of
     /// the voxel's content box).
@@ -309,9 +319,13 @@ impl<const N: usize> Packet<N> {
                 let first = entry & 0x00FF_FFFF;
                 let count = (entry >> 24) & 0x7F;
                 for k in first..first + count {
-                    let p = &vox.corners[k as usize];
-                    let (u, v, w, t) = shear.test(self, p);
-                    self.accept(&u, &v, &w, &t, vox.ids[k as usize], vox.id, k);
+                    self.triangle(
+                        shear,
+                        &vox.corners[k as usize],
+                        vox.ids[k as usize],
+                        vox.id,
+                        k,
+                    );
                 }
                 if self.any_hit && self.all_blocked() {
                     return;
@@ -389,9 +403,8 @@ impl<const N: usize> Packet<N> {
                 } else {
                     // A leaf too long for one entry (never built; kept exact).
                     for k in first..first + count {
-                        let p = &vox.corners[k as usize];
-                        let (u, v, w, t) = shear.test(self, p);
-                        self.accept(&u, &v, &w, &t, vox.ids[k as usize], vox.id, k);
+                        let c = &vox.corners[k as usize];
+                        self.triangle(shear, c, vox.ids[k as usize], vox.id, k);
                     }
                 }
             }

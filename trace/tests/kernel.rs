@@ -248,7 +248,7 @@ fn any_hit_packets_equal_brute_force() {
 /// A shadow packet that first tries a triangle (`occlude_with`) and is
 /// traversed only if lanes remain still agrees with brute force lane by
 /// lane, whatever the triangle: the occluder of a neighbouring packet
-/// (which often blocks every lane), or any triangle of the model (which
+/// (which may block every lane), or any triangle of the model (which
 /// may lie behind the origins, or beside the rays).
 #[test]
 fn shadow_packets_trying_an_occluder_first_equal_brute_force() {

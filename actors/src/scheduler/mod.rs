@@ -15,8 +15,9 @@
 //!   those that show what it rendered in the last completed frame (its
 //!   hit samples reprojected into the new camera); costliest first by that
 //!   frame's times. Then the tiles of others that show most of its content
-//!   or border its region; without affinity, a random tile. Tiles of a lost client, or outstanding past
-//!   `max(tile_deadline, 8 × median tile time)`, go to another client (the
+//!   or border its region; without affinity, a random tile. Tiles of a
+//!   lost client, or outstanding past `max(tile_deadline, 8 × median tile
+//!   time)`, go to another client (the
 //!   first report wins). A complete frame yields [`FrameDone`] for the
 //!   display and [`TileOwners`] for the prefetcher.
 //! - [`run_prefetcher`]: fetches the manifest from a store, predicts the

@@ -501,7 +501,6 @@ mod tests {
             .iter()
             .map(|&c| owners.clients.as_slice().get(c))
             .collect();
-        let n = super::super::tiles::TileGrid::new(64, 64, 32).count();
         let tb = kernel_camera(&then, 64, 64).basis();
         let nb = kernel_camera(&now, 64, 64).basis();
         let points = owners
@@ -522,7 +521,7 @@ mod tests {
                     .unwrap() as u32
             })
             .collect();
-        assert_eq!(expected.len(), n);
+        assert_eq!(expected.len(), grid.count());
         assert_eq!(recipients(&owners, Some(&then), &now, &grid), expected);
         // Without the earlier camera: reprojection, as before.
         assert_ne!(recipients(&owners, None, &now, &grid), expected);
