@@ -189,6 +189,43 @@ fn bad_input_is_a_clear_error_not_a_panic() {
 }
 
 #[test]
+fn a_corrupt_database_is_named_once_with_its_problem() {
+    let dir = tempfile::tempdir().unwrap();
+    let model = dir.path().join("plant.ply");
+    let db = dir.path().join("plant.db");
+    let gen = dray(&[
+        "generate",
+        "plant",
+        "--triangles",
+        "10000",
+        "--out",
+        s(&model),
+    ]);
+    assert!(gen.status.success(), "{}", text(&gen));
+    let pre = dray(&["preprocess", s(&model), "--out", s(&db)]);
+    assert!(pre.status.success(), "{}", text(&pre));
+    let manifest = db.join("manifest.dray");
+    let mut bytes = std::fs::read(&manifest).unwrap();
+    let last = bytes.len() - 1;
+    bytes[last] ^= 0xff;
+    std::fs::write(&manifest, &bytes).unwrap();
+    let out = dray(&["render", s(&db)]);
+    assert!(!out.status.success());
+    let t = text(&out);
+    let line = t
+        .lines()
+        .find(|l| l.starts_with("error:"))
+        .unwrap_or_else(|| panic!("{t}"));
+    assert!(
+        line.contains("manifest.dray") && line.contains("corrupt"),
+        "{t}"
+    );
+    // The cause once, not once from the message and again from the chain.
+    assert_eq!(line.matches("corrupt").count(), 1, "{t}");
+    assert!(!t.contains("panicked"), "{t}");
+}
+
+#[test]
 fn certs_init_issues_a_certificate_per_node_of_the_config() {
     let dir = tempfile::tempdir().unwrap();
     let certs = dir.path().join("certs");
