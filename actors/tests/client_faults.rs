@@ -86,6 +86,7 @@ fn options(mode: MissMode) -> ClientOptions {
         miss_mode: mode,
         max_inflight_fetches: 4,
         tiles_ahead: 2,
+        max_tiles_ahead: 2,
         preload: false,
         isa: Isa::detect(),
         stores: routes(1),

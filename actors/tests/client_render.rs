@@ -34,6 +34,7 @@ fn options(cache_bytes: u64, mode: MissMode, stores: usize) -> ClientOptions {
         miss_mode: mode,
         max_inflight_fetches: 4,
         tiles_ahead: TILES_AHEAD,
+        max_tiles_ahead: TILES_AHEAD,
         preload: false,
         isa: Isa::detect(),
         stores: routes(stores),
@@ -146,6 +147,7 @@ async fn tiles_sent_in_batches_equal_the_reference() {
     let budget = 3 * mean_voxel_bytes(&db.db);
     let opts = ClientOptions {
         tiles_ahead: 8,
+        max_tiles_ahead: 8,
         ..options(budget, MissMode::Suspend, 1)
     };
     let r = run_with(&db, opts, false, false).await;
@@ -170,6 +172,59 @@ async fn a_preloaded_client_fetches_nothing_for_its_tiles() {
     let s = &r.summary;
     assert_eq!((s.preloaded, s.fetched), (voxels, voxels), "{s:?}");
     assert_eq!(s.misses, 0, "{s:?}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_client_whose_threads_run_dry_asks_for_more_tiles_ahead() {
+    // Every voxel preloaded, so a tile traces in well under the 10 ms round
+    // trip to the scheduler: asking one tile ahead, the threads finish
+    // their tiles and wait. The client then asks for more ahead, and the
+    // frame is still the reference, bit for bit.
+    let db = plant_db(20_000);
+    let want = reference(&db.db);
+    let opts = ClientOptions {
+        preload: true,
+        tiles_ahead: 1,
+        max_tiles_ahead: 16,
+        ..options(1 << 30, MissMode::Suspend, 1)
+    };
+    let net = InProcNet::new();
+    let (_store_bus, store) = start_store(&net, 0, db.path.clone(), Shard::ALL);
+    let mut fe = FakeFrontEnd::new(&net);
+    let client_bus = net.add_node(names::client_node(0), Role::Client).unwrap();
+    let shape = LinkShape {
+        latency: LATENCY,
+        ..LinkShape::default()
+    };
+    net.set_shape(&names::client_node(0), fe.scheduler_bus.node(), shape)
+        .unwrap();
+    let mb = client_bus.mailbox(name(names::CLIENT), 1024).unwrap();
+    let client = tokio::spawn(run_client(mb, opts));
+    // The fake scheduler hands out whatever is asked for.
+    let out = render_frame(&mut fe, &db.db, &names::client(0), THREADS + 16, false).await;
+    let summary = tokio::time::timeout(Duration::from_secs(30), client)
+        .await
+        .expect("the client stops when told")
+        .unwrap()
+        .unwrap();
+    assert_same(&out, &want, "tiles asked ahead as the threads ran dry");
+    assert_eq!(summary.tiles, 24);
+    assert!(
+        out.max_outstanding > THREADS + 1 && out.requested > THREADS + 1 + 24,
+        "the client held at most {} tiles and asked for {} in all: it never asked for more ahead",
+        out.max_outstanding,
+        out.requested
+    );
+    fe.scheduler
+        .send(
+            &names::store(0),
+            Message::Shutdown(Shutdown {
+                reason: "test over".into(),
+            }),
+        )
+        .await
+        .unwrap();
+    store.await.unwrap().unwrap();
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -361,13 +361,22 @@ pub struct ClientsConfig {
     #[serde(default = "default_inflight")]
     pub max_inflight_fetches: u32,
     /// Tiles a client asks for beyond those its threads are rendering, so
-    /// it never idles waiting for the scheduler. One (the default) is
-    /// enough where a tile takes longer than a round trip to the scheduler;
-    /// for fast tiles (primary rays in 32-pixel tiles take about 0.13 ms on
-    /// one core) ask for 16 to 64: finished tiles then also leave in
-    /// batches of half that (README, Efficiency).
+    /// it never idles waiting for the scheduler: at first, and at least
+    /// (see `max_tiles_ahead`). One (the default) is enough where a tile
+    /// takes longer than a round trip to the scheduler; fast tiles
+    /// (primary rays in 32-pixel tiles take about 0.13 ms on one core)
+    /// need 16 to 32, which the client grows to by itself. Finished tiles
+    /// leave in batches of half the tiles asked ahead (README,
+    /// Efficiency).
     #[serde(default = "default_tiles_ahead")]
     pub tiles_ahead: u32,
+    /// Most tiles a client asks for ahead: where its threads run out of
+    /// work before the next tile comes (fast tiles, a slow round trip),
+    /// it asks for half as many again as before, up to this; after a long
+    /// stretch without running dry it gives one back, down to
+    /// `tiles_ahead`. At most `tiles_ahead` (say 1 and 1) fixes the number.
+    #[serde(default = "default_max_tiles_ahead")]
+    pub max_tiles_ahead: u32,
     /// Fetch every voxel that fits the cache before asking for tiles: warm
     /// caches from the first frame, for a model that fits the clients'
     /// memory (the rest, if any, is fetched on demand).
@@ -386,6 +395,9 @@ fn default_inflight() -> u32 {
 }
 fn default_tiles_ahead() -> u32 {
     1
+}
+fn default_max_tiles_ahead() -> u32 {
+    32
 }
 fn default_bind() -> String {
     "127.0.0.1".into()
@@ -730,6 +742,12 @@ impl Config {
             return Err(invalid(
                 "clients.tiles_ahead",
                 format!("{} is over 64", c.tiles_ahead),
+            ));
+        }
+        if c.max_tiles_ahead > 64 {
+            return Err(invalid(
+                "clients.max_tiles_ahead",
+                format!("{} is over 64", c.max_tiles_ahead),
             ));
         }
         if c.bind.parse::<std::net::IpAddr>().is_err() {

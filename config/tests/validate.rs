@@ -31,6 +31,7 @@ fn the_local_example_loads() {
         ]
     );
     assert_eq!(cfg.cache_bytes(), 256_000_000);
+    assert_eq!((cfg.clients.tiles_ahead, cfg.clients.max_tiles_ahead), (16, 32));
     assert!(!cfg.links.client_store.is_shaped());
 }
 
@@ -120,6 +121,11 @@ fn mistakes_name_their_key() {
         broken("count = 4", "count = 5000"),
         "clients.count",
         "more than 1024",
+    );
+    assert_names(
+        broken("max_tiles_ahead = 32", "max_tiles_ahead = 65"),
+        "clients.max_tiles_ahead",
+        "over 64",
     );
 }
 

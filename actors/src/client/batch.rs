@@ -44,6 +44,12 @@ impl TileBatch {
         }
     }
 
+    /// The client now asks for `tiles_ahead` tiles ahead
+    /// ([`super::ahead`]): batches of half that from now on.
+    pub fn set_ahead(&mut self, tiles_ahead: usize) {
+        self.size = tiles_ahead.div_ceil(2).max(1);
+    }
+
     /// Tiles a batch holds.
     pub fn size(&self) -> usize {
         self.size

@@ -6,13 +6,16 @@
 //! thread ([`worker`]); finished tiles go to the display ([`TileDone`]),
 //! which reports them to the scheduler, and the scheduler is asked for as
 //! many more tiles: one at a time, or in batches when several tiles are
-//! asked for ahead ([`batch`]). Voxels come through the [`loader`] into the
+//! asked for ahead ([`batch`]). Where a render thread runs out of tiles
+//! before the next one comes, the client asks for more ahead, up to
+//! `max_tiles_ahead` ([`ahead`]). Voxels come through the [`loader`] into the
 //! [`cache`], shared by every render thread.
 //!
 //! The actor task itself only does bookkeeping: messages go out through
 //! sender tasks, blobs are decoded on tokio's blocking pool, and tracing
 //! runs on the render threads, so the mailbox is always served promptly.
 
+mod ahead;
 mod batch;
 pub mod cache;
 mod loader;
@@ -23,6 +26,7 @@ pub use loader::{FETCH_TIMEOUT, MAX_TRIES, RETRY_DELAY};
 use crate::names::StoreRoutes;
 use crate::settings::{kernel_camera, kernel_settings};
 use crate::ActorError;
+use ahead::Ahead;
 use batch::TileBatch;
 use cache::VoxelCache;
 use dray_protocol::{
@@ -34,7 +38,7 @@ use dray_scene::db::manifest::Manifest;
 use dray_trace::scene::TopLevel;
 use dray_trace::tile::MissMode;
 use loader::{Loader, Shared};
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::Arc;
 use tokio::sync::mpsc;
 use tokio::time::{timeout, timeout_at, Duration, Instant};
@@ -57,8 +61,13 @@ pub struct ClientOptions {
     pub miss_mode: MissMode,
     /// Most voxel fetches in flight or being decoded at once.
     pub max_inflight_fetches: usize,
-    /// Tiles asked for beyond one per thread (latency hiding).
+    /// Tiles asked for beyond one per thread (latency hiding), at first
+    /// and at least.
     pub tiles_ahead: usize,
+    /// Most tiles asked for ahead: the client asks for more than
+    /// `tiles_ahead` while its threads run out of work ([`ahead`]); equal
+    /// to `tiles_ahead`, it asks for exactly that many.
+    pub max_tiles_ahead: usize,
     /// Fetch every voxel that fits the cache before asking for tiles.
     pub preload: bool,
     /// The tracing kernel.
@@ -256,7 +265,10 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
     });
     let stop = Arc::new(AtomicBool::new(false));
     let threads = opts.threads.max(1);
-    let mut batch = TileBatch::new(opts.tiles_ahead);
+    let mut ahead = Ahead::new(opts.tiles_ahead, opts.max_tiles_ahead);
+    let mut batch = TileBatch::new(ahead.current());
+    // Each thread's share of a batch.
+    let group = Arc::new(AtomicUsize::new((batch.size() / threads).max(1)));
     let mut queues = Vec::with_capacity(threads);
     let mut handles = Vec::with_capacity(threads);
     for i in 0..threads {
@@ -268,8 +280,7 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
             tiles_in_progress: 1 + opts.tiles_ahead,
             stop: stop.clone(),
             results: done_tx.clone(),
-            // Each thread's share of a batch.
-            group: (batch.size() / threads).max(1),
+            group: group.clone(),
         };
         let h = std::thread::Builder::new()
             .name(format!("render-{i}"))
@@ -283,11 +294,14 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
         handles.push(h);
     }
     drop((shared, done_tx));
-    let capacity = threads + opts.tiles_ahead;
+    // Tiles to hold: one per thread and those asked ahead.
+    let mut capacity = threads + ahead.current();
     let mut busy = vec![0usize; threads];
     // Tiles assigned whose slots are not asked for again yet (being
     // rendered, queued, or finished and held for a batch).
     let mut outstanding = 0usize;
+    // Slots asked for that the scheduler has not filled yet.
+    let mut owed = 0usize;
     let mut scheduler_up = true;
     // Work is asked for once the preload (if any) is over.
     let mut asked_for_work = false;
@@ -309,6 +323,7 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
                     seconds = preload_start.elapsed().as_secs_f64(), "preloaded");
             }
             if scheduler_up {
+                owed = capacity;
                 let _ = results.send((
                     opts.scheduler.clone(),
                     Message::RequestWork(RequestWork {
@@ -325,6 +340,7 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
                         let t = (0..threads).min_by_key(|&t| busy[t]).unwrap_or(0);
                         busy[t] += 1;
                         outstanding += 1;
+                        owed = owed.saturating_sub(1);
                         batch.assigned(a.frame);
                         let _ = queues[t].send(job(a, diagonal, opts.isa));
                     }
@@ -344,8 +360,11 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
                     if node == opts.scheduler.node && !scheduler_up {
                         scheduler_up = true;
                         let free = capacity.saturating_sub(outstanding);
-                        // Before the preload is over, work is not asked for yet.
+                        // A new scheduler owes nothing; before the preload
+                        // is over, work is not asked for yet.
+                        owed = 0;
                         if asked_for_work && free > 0 {
+                            owed = free;
                             info!(%actor, free, "scheduler is back: asking for work again");
                             let _ = results.send((
                                 opts.scheduler.clone(),
@@ -368,22 +387,39 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
             },
             Some(req) = req_rx.recv() => loader.request(req),
             Some(d) = decoded_rx.recv() => loader.decoded(d),
-            Some(group) = done_rx.recv() => {
-                for r in group {
+            Some(tiles) = done_rx.recv() => {
+                let mut resized = false;
+                for r in tiles {
                     busy[r.thread] = busy[r.thread].saturating_sub(1);
+                    resized |= ahead.tile_finished(r.idle);
                     let prefetched = loader.take_unattributed();
                     let frame = r.job.frame;
                     batch.finished(frame, finish_tile(r, prefetched, &mut summary));
                 }
-                if batch.ready() {
+                if resized {
+                    capacity = threads + ahead.current();
+                    batch.set_ahead(ahead.current());
+                    group.store((batch.size() / threads).max(1), Ordering::Relaxed);
+                    debug!(%actor, tiles_ahead = ahead.current(), "tiles asked ahead");
+                }
+                let freed = if batch.ready() {
                     let (done, freed) = batch.take();
                     outstanding = outstanding.saturating_sub(freed);
                     for msg in done {
                         let _ = pixels.send((opts.display.clone(), msg));
                     }
+                    freed
+                } else {
+                    0
+                };
+                // Ask for what the freed slots, and a grown capacity,
+                // leave unasked (after a shrink, fewer than were freed).
+                let ask = capacity.saturating_sub(outstanding + owed);
+                if (freed > 0 || resized) && ask > 0 && scheduler_up {
+                    owed += ask;
                     let _ = pixels.send((
                         opts.scheduler.clone(),
-                        Message::RequestWork(RequestWork { slots: slots(freed) }),
+                        Message::RequestWork(RequestWork { slots: slots(ask) }),
                     ));
                 }
             }

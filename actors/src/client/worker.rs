@@ -14,7 +14,7 @@ use futures::future::{select, Either};
 use futures::stream::{FuturesUnordered, StreamExt};
 use std::cell::Cell;
 use std::rc::Rc;
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::Arc;
 use std::time::Instant;
 use tokio::sync::mpsc;
@@ -43,6 +43,9 @@ pub(crate) struct TileResult {
     /// its previous tile finished. Summed over tiles it is the thread's
     /// stall time (tiles in progress together are not counted twice).
     pub stall: std::time::Duration,
+    /// How long the thread sat with no tile at all since its previous tile
+    /// finished (from its first tile on): it ran out of work.
+    pub idle: std::time::Duration,
 }
 
 /// What a render thread needs.
@@ -56,8 +59,9 @@ pub(crate) struct WorkerCtx {
     /// of the actor per group instead of one per tile ([`super::batch`]).
     pub results: mpsc::UnboundedSender<Vec<TileResult>>,
     /// Finished tiles a group holds before it is sent; a group also leaves
-    /// once this thread renders no other tile of one of its frames.
-    pub group: usize,
+    /// once this thread renders no other tile of one of its frames. The
+    /// actor changes it as the tiles it asks ahead change.
+    pub group: Arc<AtomicUsize>,
 }
 
 async fn run_job(
@@ -97,6 +101,7 @@ async fn run_job(
         image,
         bytes_fetched: loader.bytes.load(Ordering::Relaxed),
         stall: std::time::Duration::ZERO,
+        idle: std::time::Duration::ZERO,
     }
 }
 
@@ -145,6 +150,9 @@ pub(crate) fn render_thread(
         let mut charged = std::time::Duration::ZERO;
         let traced = Rc::new(Cell::new(std::time::Duration::ZERO));
         let (mut traced_total, mut idle) = (std::time::Duration::ZERO, std::time::Duration::ZERO);
+        // Idleness charged to tiles so far; `None` until the first tile
+        // arrives (waiting for it is not running out of work).
+        let mut idle_charged: Option<std::time::Duration> = None;
         let chooser = Rc::new(Cell::new(PacketChooser::new(Packets::Auto)));
         let start_job = |job: TileJob| Timed {
             frame: job.frame,
@@ -157,7 +165,10 @@ pub(crate) fn render_thread(
             // Take what is waiting, up to the limit.
             while open && running.len() < limit {
                 match tiles.try_recv() {
-                    Ok(job) => running.push(start_job(job)),
+                    Ok(job) => {
+                        idle_charged.get_or_insert(idle);
+                        running.push(start_job(job))
+                    }
                     Err(mpsc::error::TryRecvError::Empty) => break,
                     Err(mpsc::error::TryRecvError::Disconnected) => open = false,
                 }
@@ -166,7 +177,9 @@ pub(crate) fn render_thread(
                 open = false;
             }
             enum Event {
-                Done(TileResult),
+                // Boxed: a result is larger than the other variants, and
+                // one allocation a tile is nothing beside the tile.
+                Done(Box<TileResult>),
                 Job(Option<TileJob>),
                 Idle,
             }
@@ -182,13 +195,13 @@ pub(crate) fn render_thread(
                 let recv = tiles.recv();
                 futures::pin_mut!(recv);
                 match select(running.next(), recv).await {
-                    Either::Left((Some(r), _)) => Event::Done(r),
+                    Either::Left((Some(r), _)) => Event::Done(Box::new(r)),
                     Either::Left((None, _)) => Event::Idle,
                     Either::Right((job, _)) => Event::Job(job),
                 }
             } else {
                 match running.next().await {
-                    Some(r) => Event::Done(r),
+                    Some(r) => Event::Done(Box::new(r)),
                     None => Event::Idle,
                 }
             };
@@ -205,13 +218,21 @@ pub(crate) fn render_thread(
                 Event::Done(mut r) => {
                     r.stall = stalled - charged;
                     charged = stalled;
-                    unsent.push(r);
+                    if let Some(c) = idle_charged.as_mut() {
+                        r.idle = idle - *c;
+                        *c = idle;
+                    }
+                    unsent.push(*r);
                     let frame_over = |f: u64| !running.iter().any(|t| t.frame == f);
-                    if unsent.len() >= ctx.group || unsent.iter().any(|r| frame_over(r.job.frame)) {
+                    let group = ctx.group.load(Ordering::Relaxed);
+                    if unsent.len() >= group || unsent.iter().any(|r| frame_over(r.job.frame)) {
                         let _ = ctx.results.send(std::mem::take(&mut unsent));
                     }
                 }
-                Event::Job(Some(job)) => running.push(start_job(job)),
+                Event::Job(Some(job)) => {
+                    idle_charged.get_or_insert(idle);
+                    running.push(start_job(job))
+                }
                 Event::Job(None) => open = false,
                 Event::Idle => {}
             }
