@@ -374,7 +374,9 @@ pub struct ClientsConfig {
     /// work before the next tile comes (fast tiles, a slow round trip),
     /// it asks for half as many again as before, up to this; after a long
     /// stretch without running dry it gives one back, down to
-    /// `tiles_ahead`. At most `tiles_ahead` (say 1 and 1) fixes the number.
+    /// `tiles_ahead`. At most `tiles_ahead` (say 1 and 1) fixes the number,
+    /// and so does `miss_mode = "block"` (a blocked thread renders one
+    /// tile at a time, whatever its client holds).
     #[serde(default = "default_max_tiles_ahead")]
     pub max_tiles_ahead: u32,
     /// Fetch every voxel that fits the cache before asking for tiles: warm

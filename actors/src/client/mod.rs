@@ -26,7 +26,7 @@ pub use loader::{FETCH_TIMEOUT, MAX_TRIES, RETRY_DELAY};
 use crate::names::StoreRoutes;
 use crate::settings::{kernel_camera, kernel_settings};
 use crate::ActorError;
-use ahead::Ahead;
+use ahead::{Ahead, RoundTrips};
 use batch::TileBatch;
 use cache::VoxelCache;
 use dray_protocol::{
@@ -265,10 +265,19 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
     });
     let stop = Arc::new(AtomicBool::new(false));
     let threads = opts.threads.max(1);
-    let mut ahead = Ahead::new(opts.tiles_ahead, opts.max_tiles_ahead);
+    // A blocked thread renders one tile at a time whatever it holds: in
+    // block mode (the demand-paging baseline) the client holds exactly
+    // `tiles_ahead`, as such a client would.
+    let most_ahead = match opts.miss_mode {
+        MissMode::Suspend => opts.max_tiles_ahead,
+        MissMode::Block => opts.tiles_ahead,
+    };
+    let mut ahead = Ahead::new(opts.tiles_ahead, most_ahead);
+    let mut round_trips = RoundTrips::default();
     let mut batch = TileBatch::new(ahead.current());
     // Each thread's share of a batch.
     let group = Arc::new(AtomicUsize::new((batch.size() / threads).max(1)));
+    let in_progress = Arc::new(AtomicUsize::new(1 + ahead.current()));
     let mut queues = Vec::with_capacity(threads);
     let mut handles = Vec::with_capacity(threads);
     for i in 0..threads {
@@ -277,7 +286,7 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
             top: top.clone(),
             shared: shared.clone(),
             mode: opts.miss_mode,
-            tiles_in_progress: 1 + opts.tiles_ahead,
+            tiles_in_progress: in_progress.clone(),
             stop: stop.clone(),
             results: done_tx.clone(),
             group: group.clone(),
@@ -324,6 +333,7 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
             }
             if scheduler_up {
                 owed = capacity;
+                round_trips.asked(Instant::now().into_std(), capacity);
                 let _ = results.send((
                     opts.scheduler.clone(),
                     Message::RequestWork(RequestWork {
@@ -341,6 +351,7 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
                         busy[t] += 1;
                         outstanding += 1;
                         owed = owed.saturating_sub(1);
+                        round_trips.assigned(Instant::now().into_std());
                         batch.assigned(a.frame);
                         let _ = queues[t].send(job(a, diagonal, opts.isa));
                     }
@@ -363,8 +374,10 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
                         // A new scheduler owes nothing; before the preload
                         // is over, work is not asked for yet.
                         owed = 0;
+                        round_trips.forget_requests();
                         if asked_for_work && free > 0 {
                             owed = free;
+                            round_trips.asked(Instant::now().into_std(), free);
                             info!(%actor, free, "scheduler is back: asking for work again");
                             let _ = results.send((
                                 opts.scheduler.clone(),
@@ -391,7 +404,7 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
                 let mut resized = false;
                 for r in tiles {
                     busy[r.thread] = busy[r.thread].saturating_sub(1);
-                    resized |= ahead.tile_finished(r.idle);
+                    resized |= ahead.tile_finished(r.idle, round_trips.round_trip());
                     let prefetched = loader.take_unattributed();
                     let frame = r.job.frame;
                     batch.finished(frame, finish_tile(r, prefetched, &mut summary));
@@ -400,6 +413,7 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
                     capacity = threads + ahead.current();
                     batch.set_ahead(ahead.current());
                     group.store((batch.size() / threads).max(1), Ordering::Relaxed);
+                    in_progress.store(1 + ahead.current(), Ordering::Relaxed);
                     debug!(%actor, tiles_ahead = ahead.current(), "tiles asked ahead");
                 }
                 let freed = if batch.ready() {
@@ -417,6 +431,7 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
                 let ask = capacity.saturating_sub(outstanding + owed);
                 if (freed > 0 || resized) && ask > 0 && scheduler_up {
                     owed += ask;
+                    round_trips.asked(Instant::now().into_std(), ask);
                     let _ = pixels.send((
                         opts.scheduler.clone(),
                         Message::RequestWork(RequestWork { slots: slots(ask) }),

@@ -53,7 +53,9 @@ pub(crate) struct WorkerCtx {
     pub top: Arc<TopLevel>,
     pub shared: Arc<Shared>,
     pub mode: MissMode,
-    pub tiles_in_progress: usize,
+    /// Tiles a thread keeps going at once in suspend mode: one and those
+    /// the client asks ahead (the actor changes it with them).
+    pub tiles_in_progress: Arc<AtomicUsize>,
     pub stop: Arc<AtomicBool>,
     /// Finished tiles go to the client's actor task in groups: one wakeup
     /// of the actor per group instead of one per tile ([`super::batch`]).
@@ -136,9 +138,9 @@ pub(crate) fn render_thread(
     index: usize,
     mut tiles: mpsc::UnboundedReceiver<TileJob>,
 ) {
-    let limit = match ctx.mode {
+    let limit = || match ctx.mode {
         MissMode::Block => 1,
-        MissMode::Suspend => ctx.tiles_in_progress.max(1),
+        MissMode::Suspend => ctx.tiles_in_progress.load(Ordering::Relaxed).max(1),
     };
     let ctx = &ctx;
     futures::executor::block_on(async move {
@@ -163,7 +165,7 @@ pub(crate) fn render_thread(
         let mut unsent: Vec<TileResult> = Vec::new();
         loop {
             // Take what is waiting, up to the limit.
-            while open && running.len() < limit {
+            while open && running.len() < limit() {
                 match tiles.try_recv() {
                     Ok(job) => {
                         idle_charged.get_or_insert(idle);
@@ -191,7 +193,7 @@ pub(crate) fn render_thread(
                     break;
                 }
                 Event::Job(tiles.recv().await)
-            } else if open && running.len() < limit {
+            } else if open && running.len() < limit() {
                 let recv = tiles.recv();
                 futures::pin_mut!(recv);
                 match select(running.next(), recv).await {

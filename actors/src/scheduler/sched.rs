@@ -316,6 +316,14 @@ impl Frame {
         })
     }
 
+    /// Tiles of this frame out at client `c`.
+    fn held_by(&self, c: &Name) -> usize {
+        self.tiles
+            .iter()
+            .filter(|t| t.outstanding.iter().any(|(n, _)| n == c))
+            .count()
+    }
+
     fn has_work_for(&self, c: &Name) -> bool {
         self.fresh_left > 0 || self.retry_for(c).is_some()
     }
@@ -600,10 +608,22 @@ impl Scheduler {
                 };
                 let at = match own {
                     Some(at) => at,
-                    None => match self.frames.values().position(|f| f.has_work_for(node)) {
-                        Some(at) => at,
-                        None => continue,
-                    },
+                    None => {
+                        // Another client's tile only for a client about to
+                        // run dry: one that holds more tiles than it still
+                        // asks for has a queue of its own, and a tile taken
+                        // from another's region fetches what its cache lacks.
+                        if self.opts.affinity {
+                            let held: usize = self.frames.values().map(|f| f.held_by(node)).sum();
+                            if held > state.credits as usize {
+                                continue;
+                            }
+                        }
+                        match self.frames.values().position(|f| f.has_work_for(node)) {
+                            Some(at) => at,
+                            None => continue,
+                        }
+                    }
                 };
                 let open = self.frames.len();
                 let Some(frame) = self.frames.values_mut().nth(at) else {
