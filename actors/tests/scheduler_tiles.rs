@@ -1038,3 +1038,71 @@ async fn scheduler_affinity_works_ahead_on_own_tiles_before_taking_anothers() {
     }
     c.stop().await;
 }
+
+#[tokio::test(start_paused = true)]
+async fn scheduler_affinity_lets_a_client_with_a_queue_take_no_others_tiles() {
+    // As above, but client 0 asks for 16 tiles at once: when client 1
+    // falls behind, client 0 takes client 1's tiles only while it holds no
+    // more tiles than it still asks for (8 of its 16). A client with a
+    // queue of its own has no need of them, and each fetches what its
+    // cache lacks.
+    let deep = Behaviour {
+        slots: 16,
+        ..Behaviour::normal()
+    };
+    let hiccup = Behaviour {
+        slowdown: |frame| if frame >= 2 { 8 } else { 1 },
+        ..Behaviour::normal()
+    };
+    let (w, h) = (256, 256);
+    let mut c = cluster(
+        options(true, Duration::from_secs(60)),
+        w,
+        h,
+        &[deep, hiccup],
+    );
+    let still = Camera {
+        eye: [0.0, 0.0, 5.0],
+        look: [0.0, 0.0, 0.0],
+        up: [0.0, 1.0, 0.0],
+        fov_y_deg: 50.0,
+    };
+    for k in 0..6 {
+        c.send_camera(k, still).await;
+    }
+    for k in 0..6 {
+        assert_eq!(c.frame_done().await.frame, k);
+    }
+    let grid = TileGrid::new(w, h, 32);
+    let previous: Vec<_> = (0..6).map(|k| c.assignments_in(k, &grid)).collect();
+    let mut held = 0i64;
+    let (mut taken, mut most) = (0, 0);
+    for e in c.events() {
+        match e {
+            Event::Assigned {
+                frame,
+                tile,
+                client: 0,
+            } => {
+                let i = grid.index_of(&tile).expect("a grid tile");
+                let ones = frame > 0
+                    && previous[frame as usize - 1]
+                        .get(&i)
+                        .is_some_and(|v| v[0] == 1);
+                if ones {
+                    taken += 1;
+                    most = most.max(held);
+                }
+                held += 1;
+            }
+            Event::Reported { client: 0, .. } => held -= 1,
+            _ => {}
+        }
+    }
+    assert!(taken > 0, "client 0 never helped: the test sees nothing");
+    assert!(
+        most <= 8,
+        "client 0 took one of client 1's tiles while holding {most}"
+    );
+    c.stop().await;
+}
