@@ -361,24 +361,27 @@ pub struct ClientsConfig {
     #[serde(default = "default_inflight")]
     pub max_inflight_fetches: u32,
     /// Tiles a client asks for beyond those its threads are rendering, so
-    /// it never idles waiting for the scheduler: at first, and at least
-    /// (see `max_tiles_ahead`). One (the default) is enough where a tile
+    /// it never idles waiting for the scheduler (at first and at least,
+    /// with `max_tiles_ahead`). One (the default) is enough where a tile
     /// takes longer than a round trip to the scheduler; fast tiles
     /// (primary rays in 32-pixel tiles take about 0.13 ms on one core)
-    /// need 16 to 32, which the client grows to by itself. Finished tiles
-    /// leave in batches of half the tiles asked ahead (README,
-    /// Efficiency).
+    /// need 16 to 32, or `max_tiles_ahead = 32` to let the client find
+    /// the number. Finished tiles leave in batches of half the tiles asked
+    /// ahead (README, Efficiency).
     #[serde(default = "default_tiles_ahead")]
     pub tiles_ahead: u32,
-    /// Most tiles a client asks for ahead: where its threads run out of
-    /// work before the next tile comes (fast tiles, a slow round trip),
-    /// it asks for half as many again as before, up to this; after a long
-    /// stretch without running dry it gives one back, down to
-    /// `tiles_ahead`. At most `tiles_ahead` (say 1 and 1) fixes the number,
-    /// and so does `miss_mode = "block"` (a blocked thread renders one
-    /// tile at a time, whatever its client holds).
-    #[serde(default = "default_max_tiles_ahead")]
-    pub max_tiles_ahead: u32,
+    /// Most tiles a client asks for ahead. Above `tiles_ahead`, a client
+    /// whose render threads run out of tiles before the next ones come
+    /// (fast tiles, a slow round trip) asks for half as many again as
+    /// before, up to this, and gives one back after a long stretch without
+    /// running dry, down to `tiles_ahead` (in suspend mode; a blocked
+    /// thread renders one tile at a time whatever its client holds).
+    /// Unset, it is `tiles_ahead`: a fixed number. Holding more tiles
+    /// keeps the threads busy but lets the clients' regions of the image
+    /// overlap more, so with caches far smaller than the walk's working
+    /// set they fetch more (README, Affinity).
+    #[serde(default)]
+    pub max_tiles_ahead: Option<u32>,
     /// Fetch every voxel that fits the cache before asking for tiles: warm
     /// caches from the first frame, for a model that fits the clients'
     /// memory (the rest, if any, is fetched on demand).
@@ -397,9 +400,6 @@ fn default_inflight() -> u32 {
 }
 fn default_tiles_ahead() -> u32 {
     1
-}
-fn default_max_tiles_ahead() -> u32 {
-    32
 }
 fn default_bind() -> String {
     "127.0.0.1".into()
@@ -746,10 +746,10 @@ impl Config {
                 format!("{} is over 64", c.tiles_ahead),
             ));
         }
-        if c.max_tiles_ahead > 64 {
+        if let Some(most) = c.max_tiles_ahead.filter(|&m| m > 64) {
             return Err(invalid(
                 "clients.max_tiles_ahead",
-                format!("{} is over 64", c.max_tiles_ahead),
+                format!("{most} is over 64"),
             ));
         }
         if c.bind.parse::<std::net::IpAddr>().is_err() {

@@ -33,7 +33,7 @@ fn the_local_example_loads() {
     assert_eq!(cfg.cache_bytes(), 256_000_000);
     assert_eq!(
         (cfg.clients.tiles_ahead, cfg.clients.max_tiles_ahead),
-        (16, 32)
+        (16, Some(32))
     );
     assert!(!cfg.links.client_store.is_shaped());
 }

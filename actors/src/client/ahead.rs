@@ -5,9 +5,10 @@
 //! How many tiles cover that round trip depends on how fast tiles trace: a
 //! 32 × 32 tile of primary rays takes about a tenth of a millisecond, the
 //! same tile with shadows and a reflection several times that, and a tile
-//! waiting for voxels far longer. So the client starts at the configured
-//! `tiles_ahead` and grows it by half whenever a thread sat idle before a
-//! tile for up to about a round trip (up to `max_tiles_ahead`), and gives
+//! waiting for voxels far longer. So a client configured with
+//! `max_tiles_ahead` above `tiles_ahead` starts at `tiles_ahead` and grows
+//! it by half whenever a thread sat idle before a tile for up to about a
+//! round trip (up to `max_tiles_ahead`), and gives
 //! one back after a long calm stretch (every thread busy through eight
 //! times as many tiles as it asks ahead), so that it holds no more tiles
 //! than keep its threads busy: tiles a client holds are tiles the
@@ -20,6 +21,12 @@
 //! of voxels instead of 164, as each took tiles from the other's part of
 //! the image. The round trip is the quickest answer to a request lately
 //! ([`RoundTrips`]).
+//!
+//! It is off unless configured: the more tiles the clients hold, the more
+//! their regions of the image overlap. In the affinity benchmark (clients
+//! in one process on two cores, caches a quarter of the walk's working
+//! set) the clients grew to 20–32 tiles ahead and fetched 0.38–0.47 of
+//! what random assignment fetches, against 0.29–0.37 with one ahead.
 
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
