@@ -8,8 +8,9 @@
 //! many more tiles: one at a time, or in batches when several tiles are
 //! asked for ahead ([`batch`]). With `max_tiles_ahead` above
 //! `tiles_ahead`, where a render thread runs out of tiles before the next
-//! one comes, the client asks for more ahead, up to that ([`ahead`]). Voxels come through the [`loader`] into the
-//! [`cache`], shared by every render thread.
+//! one comes, the client asks for more ahead, up to that ([`ahead`]).
+//! Voxels come through the [`loader`] into the [`cache`], shared by every
+//! render thread.
 //!
 //! The actor task itself only does bookkeeping: messages go out through
 //! sender tasks, blobs are decoded on tokio's blocking pool, and tracing
@@ -65,8 +66,8 @@ pub struct ClientOptions {
     /// and at least.
     pub tiles_ahead: usize,
     /// Most tiles asked for ahead: the client asks for more than
-    /// `tiles_ahead` while its threads run out of work ([`ahead`]); equal
-    /// to `tiles_ahead`, it asks for exactly that many.
+    /// `tiles_ahead` while its threads run out of work ([`ahead`]; suspend
+    /// mode only); equal to `tiles_ahead`, it asks for exactly that many.
     pub max_tiles_ahead: usize,
     /// Fetch every voxel that fits the cache before asking for tiles.
     pub preload: bool,
