@@ -22,11 +22,13 @@
 //! the image. The round trip is the quickest answer to a request lately
 //! ([`RoundTrips`]).
 //!
-//! It is off unless configured: the more tiles the clients hold, the more
-//! their regions of the image overlap. In the affinity benchmark (clients
-//! in one process on two cores, caches a quarter of the walk's working
-//! set) the clients grew to 20–32 tiles ahead and fetched 0.38–0.47 of
-//! what random assignment fetches, against 0.29–0.37 with one ahead.
+//! It is off unless configured: in the affinity benchmark (clients in one
+//! process on two cores, caches a quarter of the walk's working set) the
+//! clients grew to 20–32 tiles ahead and fetched 0.38–0.47 of what random
+//! assignment fetches, against 0.29–0.37 with one ahead, while the
+//! scheduler let a client with half a queue left take others' tiles; now
+//! that it waits until a client holds at most one, single runs gave 0.32
+//! and 0.38 (README, Affinity).
 
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
