@@ -179,7 +179,7 @@ fn client_options(cfg: &Config, opts: &RunOptions) -> Result<ClientOptions, Clus
         },
         max_inflight_fetches: c.max_inflight_fetches as usize,
         tiles_ahead: c.tiles_ahead as usize,
-        max_tiles_ahead: c.max_tiles_ahead.unwrap_or(c.tiles_ahead) as usize,
+        max_tiles_ahead: c.most_tiles_ahead() as usize,
         preload: c.preload,
         isa: opts.isa.unwrap_or_else(Isa::detect),
         stores: store_routes(cfg)?,

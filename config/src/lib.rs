@@ -361,13 +361,12 @@ pub struct ClientsConfig {
     #[serde(default = "default_inflight")]
     pub max_inflight_fetches: u32,
     /// Tiles a client asks for beyond those its threads are rendering, so
-    /// it never idles waiting for the scheduler (at first and at least,
-    /// with `max_tiles_ahead`). One (the default) is enough where a tile
+    /// it never idles waiting for the scheduler: at first, and at least. One (the default) is enough where a tile
     /// takes longer than a round trip to the scheduler; fast tiles
     /// (primary rays in 32-pixel tiles take about 0.13 ms on one core)
-    /// need 16 to 32, or `max_tiles_ahead = 32` to let the client find
-    /// the number. Finished tiles leave in batches of half the tiles asked
-    /// ahead (README, Efficiency).
+    /// need 16 to 32, which the client finds by itself (up to
+    /// `max_tiles_ahead`). Finished tiles leave in batches of half the
+    /// tiles asked ahead (README, Efficiency).
     #[serde(default = "default_tiles_ahead")]
     pub tiles_ahead: u32,
     /// Most tiles a client asks for ahead. Above `tiles_ahead`, a client
@@ -376,10 +375,8 @@ pub struct ClientsConfig {
     /// before, up to this, and gives one back after a long stretch without
     /// running dry, down to `tiles_ahead` (in suspend mode; a blocked
     /// thread renders one tile at a time whatever its client holds).
-    /// Unset, it is `tiles_ahead`: a fixed number. Holding more tiles
-    /// keeps the threads busy but lets the clients' regions of the image
-    /// overlap more, so with caches far smaller than the walk's working
-    /// set they fetch more (README, Affinity).
+    /// Unset, it is 32 (or `tiles_ahead`, if more); at most `tiles_ahead`
+    /// fixes the number.
     #[serde(default)]
     pub max_tiles_ahead: Option<u32>,
     /// Fetch every voxel that fits the cache before asking for tiles: warm
@@ -390,6 +387,18 @@ pub struct ClientsConfig {
     /// Host the clients bind (they dial out; the port is picked).
     #[serde(default = "default_bind")]
     pub bind: String,
+}
+
+/// The most tiles a client asks for ahead when the config does not say.
+pub const DEFAULT_MAX_TILES_AHEAD: u32 = 32;
+
+impl ClientsConfig {
+    /// The most tiles a client asks for ahead: `max_tiles_ahead`, or
+    /// [`DEFAULT_MAX_TILES_AHEAD`] (`tiles_ahead` if that is more).
+    pub fn most_tiles_ahead(&self) -> u32 {
+        self.max_tiles_ahead
+            .unwrap_or(DEFAULT_MAX_TILES_AHEAD.max(self.tiles_ahead))
+    }
 }
 
 fn default_miss() -> MissMode {

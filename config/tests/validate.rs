@@ -173,3 +173,18 @@ fn a_missing_file_names_its_path() {
     let e = Config::load(Path::new("/nonexistent/dray.toml")).unwrap_err();
     assert!(e.to_string().contains("/nonexistent/dray.toml"), "{e}");
 }
+
+#[test]
+fn tiles_ahead_grow_to_32_unless_fixed() {
+    let text = example_text();
+    let unset = text.replacen("max_tiles_ahead = 32", "", 1);
+    let cfg = Config::parse(&unset).unwrap();
+    assert_eq!(cfg.clients.most_tiles_ahead(), 32);
+    let many = unset.replacen("tiles_ahead = 16", "tiles_ahead = 48", 1);
+    assert_eq!(Config::parse(&many).unwrap().clients.most_tiles_ahead(), 48);
+    let fixed = text.replacen("max_tiles_ahead = 32", "max_tiles_ahead = 16", 1);
+    assert_eq!(
+        Config::parse(&fixed).unwrap().clients.most_tiles_ahead(),
+        16
+    );
+}

@@ -5,13 +5,12 @@
 //! How many tiles cover that round trip depends on how fast tiles trace: a
 //! 32 × 32 tile of primary rays takes about a tenth of a millisecond, the
 //! same tile with shadows and a reflection several times that, and a tile
-//! waiting for voxels far longer. So a client configured with
-//! `max_tiles_ahead` above `tiles_ahead` starts at `tiles_ahead` and grows
-//! it by half whenever a thread sat idle before a tile for up to about a
-//! round trip (up to `max_tiles_ahead`), and gives
-//! one back after a long calm stretch (every thread busy through eight
-//! times as many tiles as it asks ahead), so that it holds no more tiles
-//! than keep its threads busy: tiles a client holds are tiles the
+//! waiting for voxels far longer. So a client starts at `tiles_ahead` and
+//! grows it by half whenever a thread sat idle before a tile for up to
+//! about a round trip (up to `max_tiles_ahead`, 32 unless configured), and
+//! gives one back after a long calm stretch (every thread busy through
+//! eight times as many tiles as it asks ahead), so that it holds no more
+//! tiles than keep its threads busy: tiles a client holds are tiles the
 //! scheduler cannot give to another client.
 //!
 //! A longer wait is not the round trip but the scheduler having no tile
@@ -22,13 +21,13 @@
 //! the image. The round trip is the quickest answer to a request lately
 //! ([`RoundTrips`]).
 //!
-//! It is off unless configured: in the affinity benchmark (clients in one
-//! process on two cores, caches a quarter of the walk's working set) the
-//! clients grew to 20–32 tiles ahead and fetched 0.38–0.47 of what random
-//! assignment fetches, against 0.29–0.37 with one ahead, while the
-//! scheduler let a client with half a queue left take others' tiles; now
-//! that it waits until a client holds at most one, single runs gave 0.32
-//! and 0.38 (README, Affinity).
+//! Holding more tiles must not cost affinity: in the affinity benchmark
+//! (clients in one process on two cores, caches a quarter of the walk's
+//! working set) the clients grow to 20–32 tiles ahead, and fetched 0.38–0.47
+//! of what random assignment fetches (against 0.29–0.37 with one ahead)
+//! while the scheduler let a client with half a queue left take others'
+//! tiles; since it waits until a client holds at most one, 0.30–0.39
+//! (README, Affinity).
 
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};

@@ -6,9 +6,9 @@
 //! thread ([`worker`]); finished tiles go to the display ([`TileDone`]),
 //! which reports them to the scheduler, and the scheduler is asked for as
 //! many more tiles: one at a time, or in batches when several tiles are
-//! asked for ahead ([`batch`]). With `max_tiles_ahead` above
-//! `tiles_ahead`, where a render thread runs out of tiles before the next
-//! one comes, the client asks for more ahead, up to that ([`ahead`]).
+//! asked for ahead ([`batch`]). Where a render thread runs out of tiles
+//! before the next one comes, the client asks for more ahead, up to
+//! `max_tiles_ahead` ([`ahead`]).
 //! Voxels come through the [`loader`] into the [`cache`], shared by every
 //! render thread.
 //!
