@@ -361,8 +361,9 @@ pub struct ClientsConfig {
     #[serde(default = "default_inflight")]
     pub max_inflight_fetches: u32,
     /// Tiles a client asks for beyond those its threads are rendering, so
-    /// it never idles waiting for the scheduler: at first, and at least. One (the default) is enough where a tile
-    /// takes longer than a round trip to the scheduler; fast tiles
+    /// it never idles waiting for the scheduler: at first, and at least.
+    /// One (the default) is enough where a tile takes longer than a round
+    /// trip to the scheduler; fast tiles
     /// (primary rays in 32-pixel tiles take about 0.13 ms on one core)
     /// need 16 to 32, which the client finds by itself (up to
     /// `max_tiles_ahead`). Finished tiles leave in batches of half the
