@@ -51,6 +51,29 @@ async fn run(db: &Db, cache_bytes: u64, mode: MissMode, hint: bool, outage: bool
 /// The same with any client options.
 async fn run_with(db: &Db, opts: ClientOptions, hint: bool, outage: bool) -> Run {
     let capacity = opts.threads + opts.tiles_ahead;
+    let r = render_once(db, opts, hint, outage, false).await;
+    // One slot a finished tile, besides the first ones.
+    assert!(
+        r.out.requested <= capacity + 24,
+        "the client asked for {} tiles, for 24 with {capacity} at once",
+        r.out.requested
+    );
+    r
+}
+
+/// One client renders the test frame against a real store (5 ms away)
+/// and the fake front end, which hands out as many tiles as the client
+/// may hold (`threads + max_tiles_ahead`). With `outage`, the store is cut
+/// off mid-frame and brought back; with `far_scheduler`, the scheduler is
+/// 5 ms away too.
+async fn render_once(
+    db: &Db,
+    opts: ClientOptions,
+    hint: bool,
+    outage: bool,
+    far_scheduler: bool,
+) -> Run {
+    let capacity = opts.threads + opts.max_tiles_ahead;
     let net = InProcNet::new();
     let (_store_bus, store) = start_store(&net, 0, db.path.clone(), Shard::ALL);
     let mut fe = FakeFrontEnd::new(&net);
@@ -61,6 +84,10 @@ async fn run_with(db: &Db, opts: ClientOptions, hint: bool, outage: bool) -> Run
     };
     net.set_shape(&names::client_node(0), &names::store_node(0), shape)
         .unwrap();
+    if far_scheduler {
+        net.set_shape(&names::client_node(0), fe.scheduler_bus.node(), shape)
+            .unwrap();
+    }
     let mb = client_bus.mailbox(name(names::CLIENT), 1024).unwrap();
     let client = tokio::spawn(run_client(mb, opts));
     let cut = outage.then(|| {
@@ -100,12 +127,6 @@ async fn run_with(db: &Db, opts: ClientOptions, hint: bool, outage: bool) -> Run
         .unwrap();
     let served = store.await.unwrap().unwrap();
     assert!(served.served >= summary.fetched);
-    // One slot a finished tile, besides the first ones.
-    assert!(
-        out.requested <= capacity + 24,
-        "the client asked for {} tiles, for 24 with {capacity} at once",
-        out.requested
-    );
     assert_eq!(summary.tiles, 24);
     eprintln!("{summary:?}");
     Run { out, summary }
@@ -188,25 +209,8 @@ async fn a_client_whose_threads_run_dry_asks_for_more_tiles_ahead() {
         max_tiles_ahead: 16,
         ..options(1 << 30, MissMode::Suspend, 1)
     };
-    let net = InProcNet::new();
-    let (_store_bus, store) = start_store(&net, 0, db.path.clone(), Shard::ALL);
-    let mut fe = FakeFrontEnd::new(&net);
-    let client_bus = net.add_node(names::client_node(0), Role::Client).unwrap();
-    let shape = LinkShape {
-        latency: LATENCY,
-        ..LinkShape::default()
-    };
-    net.set_shape(&names::client_node(0), fe.scheduler_bus.node(), shape)
-        .unwrap();
-    let mb = client_bus.mailbox(name(names::CLIENT), 1024).unwrap();
-    let client = tokio::spawn(run_client(mb, opts));
-    // The fake scheduler hands out whatever is asked for.
-    let out = render_frame(&mut fe, &db.db, &names::client(0), THREADS + 16, false).await;
-    let summary = tokio::time::timeout(Duration::from_secs(30), client)
-        .await
-        .expect("the client stops when told")
-        .unwrap()
-        .unwrap();
+    // The fake scheduler hands out whatever the client may hold.
+    let Run { out, summary } = render_once(&db, opts, false, false, true).await;
     assert_same(&out, &want, "tiles asked ahead as the threads ran dry");
     assert_eq!(summary.tiles, 24);
     assert!(
@@ -215,16 +219,6 @@ async fn a_client_whose_threads_run_dry_asks_for_more_tiles_ahead() {
         out.max_outstanding,
         out.requested
     );
-    fe.scheduler
-        .send(
-            &names::store(0),
-            Message::Shutdown(Shutdown {
-                reason: "test over".into(),
-            }),
-        )
-        .await
-        .unwrap();
-    store.await.unwrap().unwrap();
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

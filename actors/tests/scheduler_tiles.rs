@@ -975,6 +975,23 @@ async fn scheduler_takes_tile_reports_from_the_display_but_not_from_strangers() 
     assert_eq!((s.frames, s.reassigned), (1, 0));
 }
 
+/// Sends `frames` cameras at once, all the same, and waits for every
+/// frame to complete, in order.
+async fn fly_standing_still(c: &mut Cluster, frames: u64) {
+    let still = Camera {
+        eye: [0.0, 0.0, 5.0],
+        look: [0.0, 0.0, 0.0],
+        up: [0.0, 1.0, 0.0],
+        fov_y_deg: 50.0,
+    };
+    for k in 0..frames {
+        c.send_camera(k, still).await;
+    }
+    for k in 0..frames {
+        assert_eq!(c.frame_done().await.frame, k);
+    }
+}
+
 #[tokio::test(start_paused = true)]
 async fn scheduler_affinity_works_ahead_on_own_tiles_before_taking_anothers() {
     // Two clients, equally fast except that client 1 is eight times slower
@@ -996,18 +1013,7 @@ async fn scheduler_affinity_works_ahead_on_own_tiles_before_taking_anothers() {
         h,
         &[Behaviour::normal(), hiccup],
     );
-    let still = Camera {
-        eye: [0.0, 0.0, 5.0],
-        look: [0.0, 0.0, 0.0],
-        up: [0.0, 1.0, 0.0],
-        fov_y_deg: 50.0,
-    };
-    for k in 0..6 {
-        c.send_camera(k, still).await;
-    }
-    for k in 0..6 {
-        assert_eq!(c.frame_done().await.frame, k);
-    }
+    fly_standing_still(&mut c, 6).await;
     let grid = TileGrid::new(w, h, 32);
     let events = c.events();
     for k in [2, 4] {
@@ -1060,18 +1066,7 @@ async fn scheduler_affinity_lets_a_client_with_a_queue_take_no_others_tiles() {
         h,
         &[deep, hiccup],
     );
-    let still = Camera {
-        eye: [0.0, 0.0, 5.0],
-        look: [0.0, 0.0, 0.0],
-        up: [0.0, 1.0, 0.0],
-        fov_y_deg: 50.0,
-    };
-    for k in 0..6 {
-        c.send_camera(k, still).await;
-    }
-    for k in 0..6 {
-        assert_eq!(c.frame_done().await.frame, k);
-    }
+    fly_standing_still(&mut c, 6).await;
     let grid = TileGrid::new(w, h, 32);
     let previous: Vec<_> = (0..6).map(|k| c.assignments_in(k, &grid)).collect();
     let mut held = 0i64;

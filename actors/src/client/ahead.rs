@@ -97,7 +97,8 @@ impl Ahead {
 /// tile are longer, and drop out).
 #[derive(Debug, Default)]
 pub(crate) struct RoundTrips {
-    /// Requests not answered yet: when sent, and slots still unfilled.
+    /// Requests not yet filled: when sent, slots still unfilled, and
+    /// whether its first tile has come (and timed it).
     pending: VecDeque<(Instant, usize, bool)>,
     recent: VecDeque<Duration>,
 }

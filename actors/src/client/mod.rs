@@ -305,7 +305,7 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
     }
     drop((shared, done_tx));
     // Tiles to hold: one per thread and those asked ahead.
-    let mut capacity = threads + ahead.current();
+    let capacity = |ahead: &Ahead| threads + ahead.current();
     let mut busy = vec![0usize; threads];
     // Tiles assigned whose slots are not asked for again yet (being
     // rendered, queued, or finished and held for a batch).
@@ -333,13 +333,11 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
                     seconds = preload_start.elapsed().as_secs_f64(), "preloaded");
             }
             if scheduler_up {
-                owed = capacity;
-                round_trips.asked(Instant::now().into_std(), capacity);
+                owed = capacity(&ahead);
+                round_trips.asked(Instant::now().into_std(), owed);
                 let _ = results.send((
                     opts.scheduler.clone(),
-                    Message::RequestWork(RequestWork {
-                        slots: slots(capacity),
-                    }),
+                    Message::RequestWork(RequestWork { slots: slots(owed) }),
                 ));
             }
         }
@@ -371,7 +369,7 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
                 Some(Delivery::PeerUp { node, .. }) => {
                     if node == opts.scheduler.node && !scheduler_up {
                         scheduler_up = true;
-                        let free = capacity.saturating_sub(outstanding);
+                        let free = capacity(&ahead).saturating_sub(outstanding);
                         // A new scheduler owes nothing; before the preload
                         // is over, work is not asked for yet.
                         owed = 0;
@@ -411,7 +409,6 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
                     batch.finished(frame, finish_tile(r, prefetched, &mut summary));
                 }
                 if resized {
-                    capacity = threads + ahead.current();
                     batch.set_ahead(ahead.current());
                     group.store((batch.size() / threads).max(1), Ordering::Relaxed);
                     in_progress.store(1 + ahead.current(), Ordering::Relaxed);
@@ -429,7 +426,7 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
                 };
                 // Ask for what the freed slots, and a grown capacity,
                 // leave unasked (after a shrink, fewer than were freed).
-                let ask = capacity.saturating_sub(outstanding + owed);
+                let ask = capacity(&ahead).saturating_sub(outstanding + owed);
                 if (freed > 0 || resized) && ask > 0 && scheduler_up {
                     owed += ask;
                     round_trips.asked(Instant::now().into_std(), ask);

@@ -15,11 +15,11 @@
 //!   those that show what it rendered in the last completed frame (its
 //!   hit samples reprojected into the new camera); costliest first by that
 //!   frame's times. Then the tiles of others that show most of its content
-//!   or border its region; without affinity, a random tile. Tiles of a
-//!   lost client, or outstanding past `max(tile_deadline, 8 × median tile
-//!   time)`, go to another client (the
-//!   first report wins). A complete frame yields [`FrameDone`] for the
-//!   display and [`TileOwners`] for the prefetcher.
+//!   or border its region (only for a client holding at most one tile);
+//!   without affinity, a random tile. Tiles of a lost client, or
+//!   outstanding past `max(tile_deadline, 8 × median tile time)`, go to
+//!   another client (the first report wins). A complete frame yields
+//!   [`FrameDone`] for the display and [`TileOwners`] for the prefetcher.
 //! - [`run_prefetcher`]: fetches the manifest from a store, predicts the
 //!   next camera from the last two, samples it coarsely through the
 //!   high-level BSP and sends each client a [`PrefetchHint`] with the voxels
