@@ -64,7 +64,8 @@ type Log = Arc<Mutex<Vec<Event>>>;
 #[derive(Clone)]
 struct Behaviour {
     slots: u16,
-    /// Time to render a tile (sleep on the paused clock).
+    /// Time to render a tile (sleep on the paused clock; a block of tiles
+    /// takes this for each of its tiles of 32 pixels).
     render: Duration,
     /// The `time_us` it reports for a tile.
     cost: fn(&TileRect) -> u64,
@@ -114,7 +115,9 @@ fn spawn_client(net: &InProcNet, i: usize, b: Behaviour, log: Log) -> (Bus, Join
             let log = log.clone();
             tokio::spawn(async move {
                 while let Some((frame, tile, hits)) = rx.recv().await {
-                    tokio::time::sleep(b.render * (b.slowdown)(frame)).await;
+                    // A block takes as long as its tiles.
+                    let tiles = tile.w.div_ceil(32) * tile.h.div_ceil(32);
+                    tokio::time::sleep(b.render * (b.slowdown)(frame) * tiles).await;
                     if b.silent {
                         continue;
                     }
@@ -209,9 +212,12 @@ struct Cluster {
 const W: u32 = 100;
 const H: u32 = 70;
 
+/// Single tiles: these tests follow each tile (blocks of tiles have
+/// tests of their own at the end).
 fn options(affinity: bool, deadline: Duration) -> SchedulerOptions {
     SchedulerOptions {
         tile_size: 32,
+        max_block_px: 0,
         affinity,
         costliest_first: true,
         tile_deadline: deadline,
@@ -1098,5 +1104,200 @@ async fn scheduler_affinity_lets_a_client_with_a_queue_take_no_others_tiles() {
         most <= 1,
         "client 0 took one of client 1's tiles while holding {most}"
     );
+    c.stop().await;
+}
+
+/// Per tile of `grid`, the clients frame `frame`'s assignments (single
+/// tiles or blocks of them) gave it to, and the assignments' sizes in
+/// tiles, in order.
+fn blocks_in(c: &Cluster, grid: &TileGrid, frame: u64) -> (HashMap<usize, Vec<usize>>, Vec<usize>) {
+    let mut tiles: HashMap<usize, Vec<usize>> = HashMap::new();
+    let mut sizes = Vec::new();
+    for e in c.events() {
+        if let Event::Assigned {
+            frame: f,
+            tile,
+            client,
+        } = e
+        {
+            if f == frame {
+                let b = grid.tiles_of(&tile).expect("whole tiles of the grid");
+                sizes.push(b.len());
+                for i in b {
+                    tiles.entry(i).or_default().push(client);
+                }
+            }
+        }
+    }
+    (tiles, sizes)
+}
+
+#[tokio::test(start_paused = true)]
+async fn scheduler_hands_out_blocks_of_tiles_early_and_single_tiles_last() {
+    let (w, h) = (640, 480);
+    let opts = SchedulerOptions {
+        max_block_px: 128,
+        ..options(true, Duration::from_secs(60))
+    };
+    let mut c = cluster(opts, w, h, &[Behaviour::normal(), Behaviour::normal()]);
+    let done = c.run_sequential(4).await;
+    let grid = TileGrid::new(w, h, 32);
+    let n = grid.count();
+    for (k, d) in done.iter().enumerate() {
+        let (tiles, sizes) = blocks_in(&c, &grid, k as u64);
+        // Every tile once, to exactly one client.
+        assert_eq!(tiles.len(), n, "frame {k}");
+        assert!(tiles.values().all(|v| v.len() == 1), "frame {k}");
+        // Blocks of up to 4 × 4 tiles (each client's first one in the
+        // first frame, where no tile has an owner yet; later ones where
+        // a block's tiles all stay with one client), single tiles last,
+        // far fewer assignments than tiles.
+        if k == 0 {
+            assert_eq!(sizes[..2], [16, 16], "{sizes:?}");
+        }
+        assert!(sizes.iter().all(|&s| s <= 16), "frame {k}: {sizes:?}");
+        assert_eq!(sizes[sizes.len() - 1], 1, "frame {k}: {sizes:?}");
+        assert!(
+            sizes.len() < n / 4,
+            "frame {k}: {} assignments",
+            sizes.len()
+        );
+        // A block counts as its tiles.
+        let s = &d.stats;
+        assert_eq!(s.tiles as usize, n);
+        assert_eq!(s.reassigned, 0);
+        assert_eq!(s.rays, u64::from(w * h));
+        let per = s.clients.as_slice();
+        assert_eq!(per.iter().map(|c| c.tiles as usize).sum::<usize>(), n);
+        assert_eq!(per.len(), 2, "both clients rendered: {per:?}");
+    }
+    // The camera moves a little each frame: each client keeps most of its
+    // region, block by block.
+    let kept = |a: u64, b: u64| {
+        let (ta, tb) = (blocks_in(&c, &grid, a).0, blocks_in(&c, &grid, b).0);
+        (0..n).filter(|i| ta[i] == tb[i]).count() as f64 / n as f64
+    };
+    for k in 1..3 {
+        assert!(
+            kept(k, k + 1) > 0.8,
+            "frames {k}, {}: {}",
+            k + 1,
+            kept(k, k + 1)
+        );
+    }
+    // The prefetcher's owners are per tile, with at most MAX_TILE_HITS
+    // hits each.
+    let mut owners: Vec<TileOwners> = Vec::new();
+    while let Some(d) = c.prefetcher.try_recv() {
+        if let dray_runtime::Delivery::Message {
+            msg: Message::TileOwners(o),
+            ..
+        } = d
+        {
+            owners.push(o);
+        }
+    }
+    assert_eq!(owners.len(), 4);
+    for o in &owners {
+        assert_eq!(o.owners.0.len(), n);
+        assert!(o.owners.0.iter().all(|&i| i < 2));
+        assert!(o.hit_counts.0.iter().any(|&h| h > 0));
+    }
+    c.stop().await;
+}
+
+#[tokio::test(start_paused = true)]
+async fn scheduler_reassigns_each_tile_of_a_lost_clients_block() {
+    let (w, h) = (320, 240);
+    let mute = Behaviour {
+        slots: 1,
+        silent: true,
+        ..Behaviour::normal()
+    };
+    let opts = SchedulerOptions {
+        max_block_px: 128,
+        ..options(true, Duration::from_secs(3600))
+    };
+    let mut c = cluster(opts, w, h, &[Behaviour::normal(), mute]);
+    c.camera(0).await;
+    tokio::time::timeout(Duration::from_secs(60), async {
+        while !c
+            .events()
+            .iter()
+            .any(|e| matches!(e, Event::Assigned { client: 1, .. }))
+        {
+            tokio::time::sleep(Duration::from_millis(1)).await;
+        }
+    })
+    .await
+    .expect("the mute client got a block");
+    let grid = TileGrid::new(w, h, 32);
+    let held: usize = c
+        .events()
+        .iter()
+        .filter_map(|e| match e {
+            Event::Assigned {
+                client: 1, tile, ..
+            } => grid.tiles_of(tile).map(|b| b.len()),
+            _ => None,
+        })
+        .sum();
+    // Its one slot holds a block (of 2 × 2 tiles or more: the first client
+    // took the first 4 × 4 while alone).
+    assert!(held >= 4, "{held} tiles");
+    c.net.disconnect(&name("scheduler"), &names::client_node(1));
+    let d = c.frame_done().await;
+    assert_eq!(d.stats.tiles as usize, grid.count());
+    assert_eq!(
+        d.stats.reassigned as usize, held,
+        "each of the block's tiles"
+    );
+    let per = d.stats.clients.as_slice();
+    assert_eq!((per.len(), per[0].tiles as usize), (1, grid.count()));
+    c.stop().await;
+}
+
+#[tokio::test(start_paused = true)]
+async fn scheduler_gives_a_block_the_time_of_its_tiles_before_its_deadline() {
+    // Client 0 takes 1 ms a tile, client 1 5 ms; the deadline is 30 ms or
+    // 8 times the median tile (1 ms), whichever is more. Client 1's first
+    // block of 16 tiles takes 80 ms: late for a tile, not for 16 of them.
+    fn cost(per_tile: u64) -> impl Fn(&TileRect) -> u64 {
+        move |t| per_tile * u64::from(t.w.div_ceil(32) * t.h.div_ceil(32))
+    }
+    let quick = Behaviour {
+        render: Duration::from_millis(1),
+        cost: |t| cost(1000)(t),
+        ..Behaviour::normal()
+    };
+    let slower = Behaviour {
+        slots: 1,
+        render: Duration::from_millis(5),
+        cost: |t| cost(5000)(t),
+        ..Behaviour::normal()
+    };
+    let opts = SchedulerOptions {
+        max_block_px: 128,
+        ..options(true, Duration::from_millis(30))
+    };
+    let (w, h) = (640, 256);
+    let mut c = cluster(opts, w, h, &[quick, slower]);
+    c.camera(0).await;
+    let d = c.frame_done().await;
+    let grid = TileGrid::new(w, h, 32);
+    let (_, sizes) = blocks_in(&c, &grid, 0);
+    let first_of_1 = c
+        .events()
+        .iter()
+        .find_map(|e| match e {
+            Event::Assigned {
+                client: 1, tile, ..
+            } => grid.tiles_of(tile).map(|b| b.len()),
+            _ => None,
+        })
+        .unwrap();
+    assert_eq!(first_of_1, 16, "{sizes:?}");
+    assert_eq!(d.stats.tiles as usize, grid.count());
+    assert_eq!(d.stats.reassigned, 0, "{sizes:?}");
     c.stop().await;
 }

@@ -247,6 +247,13 @@ pub struct SchedulerConfig {
     /// times the frame's median tile time) is given to another client, ms.
     #[serde(default = "default_deadline")]
     pub tile_deadline_ms: u64,
+    /// With affinity, early in a frame a client gets an aligned block of
+    /// its tiles as one assignment, at most this many pixels a side (its
+    /// pixels come back in one message; the blocks shrink to single tiles
+    /// as the frame's tiles run out). A value under twice the tile size
+    /// hands out single tiles only.
+    #[serde(default = "default_max_block_px")]
+    pub max_block_px: u32,
 }
 
 fn yes() -> bool {
@@ -254,6 +261,11 @@ fn yes() -> bool {
 }
 fn default_deadline() -> u64 {
     2000
+}
+/// The default [`SchedulerConfig::max_block_px`]: 4 × 4 tiles of 32 pixels.
+pub const DEFAULT_MAX_BLOCK_PX: u32 = 128;
+fn default_max_block_px() -> u32 {
+    DEFAULT_MAX_BLOCK_PX
 }
 
 /// A voxel store.
@@ -646,6 +658,15 @@ impl Config {
         }
         if self.scheduler.tile_deadline_ms == 0 {
             return Err(invalid("scheduler.tile_deadline_ms", "must be at least 1"));
+        }
+        if self.scheduler.max_block_px > MAX_TILE_SIZE {
+            return Err(invalid(
+                "scheduler.max_block_px",
+                format!(
+                    "{} is more than {MAX_TILE_SIZE}, the largest tile a message carries",
+                    self.scheduler.max_block_px
+                ),
+            ));
         }
         let p = &self.prefetch;
         if p.step == 0 || p.step > 256 {

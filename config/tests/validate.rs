@@ -36,6 +36,7 @@ fn the_local_example_loads() {
         (16, Some(32))
     );
     assert!(!cfg.links.client_store.is_shaped());
+    assert_eq!(cfg.scheduler.max_block_px, 128, "the default");
 }
 
 /// Replaces the first occurrence of `from` in the example and returns the
@@ -129,6 +130,14 @@ fn mistakes_name_their_key() {
         broken("max_tiles_ahead = 32", "max_tiles_ahead = 65"),
         "clients.max_tiles_ahead",
         "over 64",
+    );
+    assert_names(
+        broken(
+            "tile_deadline_ms = 2000",
+            "tile_deadline_ms = 2000\nmax_block_px = 512",
+        ),
+        "scheduler.max_block_px",
+        "more than 256",
     );
 }
 

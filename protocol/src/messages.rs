@@ -178,7 +178,7 @@ pub struct TileDone {
     /// World positions of the tile's primary hits at a few pixels spread
     /// over it (misses left out), which the display passes on to the
     /// scheduler in the tile's [`TileReport`].
-    pub hits: BoundedVec<[f32; 3], MAX_TILE_HITS>,
+    pub hits: BoundedVec<[f32; 3], MAX_REPORT_HITS>,
 }
 
 /// A client asks a store for a voxel.
@@ -318,11 +318,15 @@ pub struct TileReport {
     /// over it (misses left out): where its content lies, so that the
     /// scheduler can give the tiles that show it in the next frame to the
     /// client whose cache holds it (reprojection affinity).
-    pub hits: BoundedVec<[f32; 3], MAX_TILE_HITS>,
+    pub hits: BoundedVec<[f32; 3], MAX_REPORT_HITS>,
 }
 
-/// Most hit positions one [`TileReport`] carries (a 4 × 4 grid).
+/// Most hit positions the scheduler keeps, and a [`TileOwners`] carries,
+/// per tile of the frame's grid (a 4 × 4 grid of them).
 pub const MAX_TILE_HITS: usize = 16;
+/// Most hit positions one [`TileDone`] or [`TileReport`] carries: a
+/// block of 4 × 4 tiles sampled as densely as one tile (16 × 16).
+pub const MAX_REPORT_HITS: usize = 256;
 
 /// The frame assigner releases a frame to the scheduler.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -503,7 +507,7 @@ impl MessageKind {
             | MessageKind::FrameStart
             | MessageKind::FrameAssigned => ENVELOPE_OVERHEAD,
             MessageKind::TileReport => {
-                ENVELOPE_OVERHEAD + crate::MAX_NAME_LEN + 1 + MAX_TILE_HITS * 12 + 1
+                ENVELOPE_OVERHEAD + crate::MAX_NAME_LEN + 2 + MAX_REPORT_HITS * 12
             }
             MessageKind::ManifestData => BULK_FRAME_MAX,
             MessageKind::TileOwners => {
@@ -518,7 +522,7 @@ impl MessageKind {
             }
             MessageKind::VoxelError | MessageKind::Shutdown => ENVELOPE_OVERHEAD + text,
             MessageKind::TileDone => {
-                ENVELOPE_OVERHEAD + 3 * (tile_px * 4 + 4) + MAX_TILE_HITS * 12 + 1
+                ENVELOPE_OVERHEAD + 3 * (tile_px * 4 + 4) + MAX_REPORT_HITS * 12 + 2
             }
             MessageKind::VoxelLoaded => BULK_FRAME_MAX,
             MessageKind::FrameDone => {

@@ -272,7 +272,7 @@ fn maximal_messages_fit_their_limits() {
             depth: Some(PackedF32(vec![f32::INFINITY; n])),
             prim_ids: Some(PackedU32(vec![u32::MAX; n])),
             stats,
-            hits: BoundedVec::new(vec![[f32::MAX; 3]; MAX_TILE_HITS]).unwrap(),
+            hits: BoundedVec::new(vec![[f32::MAX; 3]; MAX_REPORT_HITS]).unwrap(),
         }),
         Message::FetchVoxel(FetchVoxel { id: u32::MAX }),
         Message::VoxelLoaded(VoxelLoaded {
@@ -317,7 +317,7 @@ fn maximal_messages_fit_their_limits() {
             frame: u64::MAX,
             tile,
             stats,
-            hits: BoundedVec::new(vec![[f32::MAX; 3]; MAX_TILE_HITS]).unwrap(),
+            hits: BoundedVec::new(vec![[f32::MAX; 3]; MAX_REPORT_HITS]).unwrap(),
         }),
         Message::FrameStart(FrameStart {
             frame: u64::MAX,

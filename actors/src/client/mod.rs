@@ -32,7 +32,7 @@ use batch::TileBatch;
 use cache::VoxelCache;
 use dray_protocol::{
     Address, AssignTile, Blob, BoundedVec, FetchManifest, Message, PackedF32, PackedU32,
-    RequestWork, TileDone, TileStats,
+    RequestWork, TileDone, TileStats, MAX_REPORT_HITS,
 };
 use dray_runtime::{ActorRef, Delivery, Mailbox};
 use dray_scene::db::manifest::Manifest;
@@ -50,6 +50,11 @@ use worker::{render_thread, TileJob, TileResult, WorkerCtx};
 pub const MANIFEST_TIMEOUT: Duration = Duration::from_secs(5);
 /// How often retries and fetch timeouts are looked at.
 const TICK: Duration = Duration::from_millis(20);
+/// Pixels between a tile's hit samples, along x and y.
+const HIT_SPACING: u32 = 8;
+/// Most hit samples along a side: the largest grid a report carries.
+const HIT_GRID_MAX: u32 = 16;
+const _: () = assert!((HIT_GRID_MAX * HIT_GRID_MAX) as usize <= MAX_REPORT_HITS);
 
 /// How a client runs.
 #[derive(Clone, Debug)]
@@ -509,10 +514,16 @@ fn finish_tile(r: TileResult, prefetched: u64, summary: &mut ClientSummary) -> O
                 bytes_fetched: bytes_fetched + prefetched,
                 stall_us: stall.as_micros() as u64,
             };
-            // 4 × 4 = MAX_TILE_HITS samples: enough for the scheduler to
-            // tell whose content the next frame's tiles show.
+            // One sample per 8 × 8 pixels (4 × 4 in a 32-pixel tile, 16 × 16
+            // = MAX_REPORT_HITS in a block of 4 × 4 such tiles): enough for
+            // the scheduler to tell whose content the next frame's tiles
+            // show.
+            let side = job.tile.w.max(job.tile.h);
             let hits: Vec<[f32; 3]> = img
-                .sample_hits(&job.camera, 4)
+                .sample_hits(
+                    &job.camera,
+                    side.div_ceil(HIT_SPACING).clamp(1, HIT_GRID_MAX),
+                )
                 .iter()
                 .map(|p| p.to_array())
                 .collect();

@@ -10,7 +10,7 @@ use crate::ActorError;
 use dray_protocol::{
     Address, AssignTile, Blob, BoundedVec, Camera, ClientFrameStats, FrameAssigned, FrameDone,
     FrameStart, FrameStats, Message, Name, PackedF32, PackedU32, RenderSettings, TileOwners,
-    TileReport, MAX_STATS_CLIENTS,
+    TileReport, MAX_STATS_CLIENTS, MAX_TILE_HITS,
 };
 use dray_runtime::{Delivery, Mailbox};
 use dray_scene::rng::Rng;
@@ -32,6 +32,10 @@ pub struct SchedulerOptions {
     /// With affinity, hand out a client's tiles (and stolen tiles) costliest
     /// first, by the previous frame's measured time of each tile.
     pub costliest_first: bool,
+    /// With affinity, early in a frame the tiles go out in aligned blocks
+    /// of at most this many pixels a side (see [`Frame::block`]); under
+    /// twice `tile_size`, one tile at a time.
+    pub max_block_px: u32,
     /// A tile outstanding longer than this (and than 8 × the median tile
     /// time of its frame so far) is given to another client too.
     pub tile_deadline: Duration,
@@ -58,6 +62,11 @@ pub struct SchedulerSummary {
 
 /// How often outstanding tiles are checked against the deadline.
 const DEADLINE_CHECK: Duration = Duration::from_millis(20);
+/// A block of n tiles goes out as one assignment only while the frame
+/// has at least `n × clients × BLOCK_GUIDE` fresh tiles left (guided
+/// self-scheduling: a block is at most half of each client's share of
+/// what is left).
+const BLOCK_GUIDE: usize = 2;
 /// Most credits one client may hold.
 const MAX_CREDITS: u32 = 4096;
 
@@ -74,10 +83,20 @@ enum State {
     Done,
 }
 
+/// A client that has a tile to render.
+struct Holder {
+    client: Name,
+    /// When it was assigned.
+    since: Instant,
+    /// Tiles in the block it came in (1: alone), which the deadline
+    /// allows for.
+    block: u32,
+}
+
 struct Tile {
     state: State,
-    /// Assignments not reported yet: client node and when.
-    outstanding: Vec<(Name, Instant)>,
+    /// Assignments not reported yet.
+    outstanding: Vec<Holder>,
 }
 
 /// The last completed frame: what affinity and costliest-first go by.
@@ -275,7 +294,7 @@ impl Frame {
             // Whoever has it in this frame, else its affinity client.
             let owner = self.owners[i]
                 .as_ref()
-                .or(self.tiles[i].outstanding.first().map(|(n, _)| n))
+                .or(self.tiles[i].outstanding.first().map(|h| &h.client))
                 .or(self.affine[i].as_ref());
             if let Some(o) = owner {
                 self.region
@@ -312,7 +331,7 @@ impl Frame {
     fn retry_for(&self, c: &Name) -> Option<usize> {
         self.retry.iter().position(|&i| {
             self.tiles[i].state == State::Retry
-                && !self.tiles[i].outstanding.iter().any(|(n, _)| n == c)
+                && !self.tiles[i].outstanding.iter().any(|h| h.client == *c)
         })
     }
 
@@ -320,7 +339,7 @@ impl Frame {
     fn held_by(&self, c: &Name) -> usize {
         self.tiles
             .iter()
-            .filter(|t| t.outstanding.iter().any(|(n, _)| n == c))
+            .filter(|t| t.outstanding.iter().any(|h| h.client == *c))
             .count()
     }
 
@@ -442,6 +461,46 @@ impl Frame {
                 }
             })?;
         Some(self.groups[g].remove(k))
+    }
+
+    /// Tile `i`, just picked for a client, with the fresh tiles of its
+    /// aligned block that sit in the same queue, while the frame has many
+    /// fresh tiles left (see [`BLOCK_GUIDE`]): one assignment, one
+    /// message each way, for what would otherwise be up to 16. The block
+    /// shrinks as the frame's fresh tiles run out, so that the last tiles
+    /// still balance the clients' loads one by one. Returns the tiles,
+    /// row by row, taken out of their queues.
+    fn block(&mut self, i: usize, clients: usize, max_px: u32) -> Vec<usize> {
+        if self.tiles[i].state != State::Fresh {
+            return vec![i];
+        }
+        let ts = self.grid.tile_size;
+        let mut side = 1;
+        while side * 2 * ts <= max_px {
+            side *= 2;
+        }
+        while side > 1 {
+            let n = (side * side) as usize;
+            if self.fresh_left >= n * clients.max(1) * BLOCK_GUIDE {
+                let block = self.grid.block_of(i, side);
+                let queue = &self.affine[i];
+                if block.iter().all(|&j| {
+                    j == i || (self.tiles[j].state == State::Fresh && self.affine[j] == *queue)
+                }) {
+                    for &j in block.iter().filter(|&&j| j != i) {
+                        match queue.as_ref().and_then(|o| self.group_of.get(o)) {
+                            Some(&g) => self.groups[g].retain(|&k| k != j),
+                            None => {
+                                self.unowned.remove(&self.ranks[j]);
+                            }
+                        }
+                    }
+                    return block;
+                }
+            }
+            side /= 2;
+        }
+        vec![i]
     }
 
     fn median_time(&mut self) -> u64 {
@@ -648,24 +707,35 @@ impl Scheduler {
                 };
                 state.credits -= 1;
                 progress = true;
-                if self.opts.affinity {
-                    let rank = frame.ranks[i];
-                    frame.region.entry(node.clone()).or_default().insert(rank);
-                    frame.last.insert(node.clone(), rank);
+                let tiles = if self.opts.affinity {
+                    frame.block(i, n, self.opts.max_block_px)
+                } else {
+                    vec![i]
+                };
+                for &i in &tiles {
+                    if self.opts.affinity {
+                        let rank = frame.ranks[i];
+                        frame.region.entry(node.clone()).or_default().insert(rank);
+                        frame.last.insert(node.clone(), rank);
+                    }
+                    let t = &mut frame.tiles[i];
+                    if t.state == State::Fresh {
+                        frame.fresh_left -= 1;
+                    }
+                    t.state = State::Out;
+                    t.outstanding.push(Holder {
+                        client: node.clone(),
+                        since: now,
+                        block: tiles.len() as u32,
+                    });
                 }
-                let t = &mut frame.tiles[i];
-                if t.state == State::Fresh {
-                    frame.fresh_left -= 1;
-                }
-                t.state = State::Out;
-                t.outstanding.push((node.clone(), now));
                 frame.first_assign.get_or_insert(now);
                 out.push(Out::Assign {
                     node: node.clone(),
                     to: state.addr.clone(),
                     msg: AssignTile {
                         frame: frame.number,
-                        tile: frame.grid.rect(i),
+                        tile: frame.grid.span(tiles[0], tiles[tiles.len() - 1]),
                         camera: frame.camera,
                         width: frame.grid.width,
                         height: frame.grid.height,
@@ -689,35 +759,66 @@ impl Scheduler {
             debug!(frame = r.frame, client = %node, "report for an unknown or finished frame ignored");
             return;
         };
-        let Some(i) = frame.grid.index_of(&r.tile) else {
+        let Some(tiles) = frame.grid.tiles_of(&r.tile) else {
             warn!(frame = r.frame, client = %node, tile = ?r.tile, "report for a tile that is not one of the frame's ignored");
             return;
         };
-        let t = &mut frame.tiles[i];
-        t.outstanding.retain(|(n, _)| n != node);
-        match t.state {
-            State::Done => return,
-            State::Fresh => {
-                warn!(frame = r.frame, client = %node, tile = i, "report for a tile never assigned ignored");
-                return;
-            }
-            State::Out | State::Retry => {}
-        }
-        t.state = State::Done;
-        frame.done += 1;
-        frame.last_report = Some(Instant::now());
         let s = r.stats;
-        frame.costs[i] = s.time_us;
-        frame.owners[i] = Some(node.clone());
-        // A peer's floats: only finite ones can be projected.
-        frame.hits[i] = r
+        let area: u64 = r.tile.area() as u64;
+        // A block's hits go to the tile each shows in (the first one if it
+        // cannot be placed).
+        let camera = (tiles.len() > 1)
+            .then(|| kernel_camera(&frame.camera, frame.grid.width, frame.grid.height).basis());
+        let hits: Vec<Vec3> = r
             .hits
             .as_slice()
             .iter()
             .map(|&h| Vec3::from_array(h))
+            // A peer's floats: only finite ones can be projected.
             .filter(|h| h.is_finite())
             .collect();
-        frame.times.push(s.time_us);
+        let mut done = 0u32;
+        for (k, &i) in tiles.iter().enumerate() {
+            let t = &mut frame.tiles[i];
+            t.outstanding.retain(|h| h.client != *node);
+            match t.state {
+                State::Done => continue,
+                State::Fresh => {
+                    warn!(frame = r.frame, client = %node, tile = i, "report for a tile never assigned ignored");
+                    continue;
+                }
+                State::Out | State::Retry => {}
+            }
+            t.state = State::Done;
+            done += 1;
+            frame.done += 1;
+            // The block's time, shared by area.
+            let share = (u128::from(s.time_us) * frame.grid.rect(i).area() as u128
+                / u128::from(area.max(1))) as u64;
+            frame.costs[i] = share;
+            frame.times.push(share);
+            frame.owners[i] = Some(node.clone());
+            let mine: Vec<Vec3> = match &camera {
+                None => hits.clone(),
+                Some(cam) => hits
+                    .iter()
+                    .copied()
+                    .filter(|&h| {
+                        let at = cam
+                            .project(h)
+                            .filter(|&(x, y)| x >= 0.0 && y >= 0.0)
+                            .and_then(|(x, y)| frame.grid.tile_at(x as u32, y as u32))
+                            .filter(|t| tiles.contains(t));
+                        at.map_or(k == 0, |t| t == i)
+                    })
+                    .collect(),
+            };
+            frame.hits[i] = spread(mine, MAX_TILE_HITS);
+        }
+        if done == 0 {
+            return;
+        }
+        frame.last_report = Some(Instant::now());
         let fs = &mut frame.stats;
         // Sums of what a peer reports: saturating, as a hostile or broken
         // client may report anything.
@@ -739,7 +840,7 @@ impl Scheduler {
                 bytes_fetched: 0,
                 stall_us: 0,
             });
-        c.tiles += 1;
+        c.tiles += done;
         c.rays = c.rays.saturating_add(s.rays);
         c.misses = c.misses.saturating_add(u64::from(s.misses));
         c.bytes_fetched = c.bytes_fetched.saturating_add(s.bytes_fetched);
@@ -820,7 +921,7 @@ impl Scheduler {
             for i in 0..frame.tiles.len() {
                 let t = &mut frame.tiles[i];
                 let before = t.outstanding.len();
-                t.outstanding.retain(|(n, _)| n != node);
+                t.outstanding.retain(|h| h.client != *node);
                 if t.outstanding.len() < before && t.outstanding.is_empty() && t.state == State::Out
                 {
                     Self::requeue(frame, i, why, node);
@@ -839,24 +940,34 @@ impl Scheduler {
             if frame.tiles.len() - frame.fresh_left == frame.done {
                 continue;
             }
-            let median = Duration::from_micros(frame.median_time().saturating_mul(8));
-            let limit = self.opts.tile_deadline.max(median);
+            let median = frame.median_time().saturating_mul(8);
             for i in 0..frame.tiles.len() {
                 let t = &frame.tiles[i];
                 if t.state != State::Out {
                     continue;
                 }
-                let Some((who, since)) = t.outstanding.iter().max_by_key(|(_, at)| *at) else {
+                let Some(h) = t.outstanding.iter().max_by_key(|h| h.since) else {
                     continue;
                 };
-                if now.saturating_duration_since(*since) > limit {
-                    let who = who.clone();
+                // A block takes as long as its tiles together.
+                let median = Duration::from_micros(median.saturating_mul(u64::from(h.block)));
+                let limit = self.opts.tile_deadline.max(median);
+                if now.saturating_duration_since(h.since) > limit {
+                    let who = h.client.clone();
                     let why = format!("not done after {} ms", limit.as_millis());
                     Self::requeue(frame, i, &why, &who);
                 }
             }
         }
     }
+}
+
+/// At most `max` of `v`, spread evenly over it.
+fn spread<T: Copy>(v: Vec<T>, max: usize) -> Vec<T> {
+    if v.len() <= max {
+        return v;
+    }
+    (0..max).map(|k| v[k * v.len() / max]).collect()
 }
 
 /// Runs the scheduler until [`Message::Shutdown`] (or the mailbox closes).

@@ -64,6 +64,59 @@ impl TileGrid {
         (self.rect(i) == *r).then_some(i)
     }
 
+    /// The tiles of the aligned block of `side` × `side` tiles that holds
+    /// tile `i`, clipped to the grid, row by row (`i` among them).
+    pub fn block_of(&self, i: usize, side: u32) -> Vec<usize> {
+        let side = side.max(1);
+        let (cx, cy) = (
+            (i % self.cols as usize) as u32,
+            (i / self.cols as usize) as u32,
+        );
+        let (bx, by) = (cx / side * side, cy / side * side);
+        let mut tiles = Vec::new();
+        for y in by..(by + side).min(self.rows) {
+            for x in bx..(bx + side).min(self.cols) {
+                tiles.push(y as usize * self.cols as usize + x as usize);
+            }
+        }
+        tiles
+    }
+
+    /// The rectangle that the tiles `first` to `last` (indices, `last`
+    /// right of and below `first`) span together.
+    pub fn span(&self, first: usize, last: usize) -> TileRect {
+        let (a, b) = (self.rect(first), self.rect(last));
+        TileRect {
+            x: a.x,
+            y: a.y,
+            w: b.x + b.w - a.x,
+            h: b.y + b.h - a.y,
+        }
+    }
+
+    /// The tiles `r` covers, row by row, if it is exactly a rectangle of
+    /// whole tiles of this grid (one tile, or a block of them).
+    pub fn tiles_of(&self, r: &TileRect) -> Option<Vec<usize>> {
+        if r.w == 0 || r.h == 0 {
+            return None;
+        }
+        let first = self.index_of(&TileRect {
+            x: r.x,
+            y: r.y,
+            w: self.tile_size.min(self.width.saturating_sub(r.x)),
+            h: self.tile_size.min(self.height.saturating_sub(r.y)),
+        })?;
+        let (x1, y1) = (r.x.checked_add(r.w)?, r.y.checked_add(r.h)?);
+        let last = self.tile_at(x1 - 1, y1 - 1)?;
+        (self.span(first, last) == *r).then(|| {
+            let (c0, r0) = (first % self.cols as usize, first / self.cols as usize);
+            let (c1, r1) = (last % self.cols as usize, last / self.cols as usize);
+            (r0..=r1)
+                .flat_map(|y| (c0..=c1).map(move |x| y * self.cols as usize + x))
+                .collect()
+        })
+    }
+
     /// Each tile's position along a Hilbert curve generalized to
     /// rectangles: consecutive positions are neighbouring tiles (a
     /// diagonal step at most, where a side is odd), so a run of positions
@@ -176,6 +229,54 @@ mod tests {
         );
         assert_eq!(g.tile_at(99, 69), Some(11));
         assert_eq!(g.tile_at(100, 0), None);
+    }
+
+    #[test]
+    fn blocks_are_aligned_clipped_and_their_rects_map_back_to_their_tiles() {
+        let g = TileGrid::new(100, 70, 32);
+        // 4 × 3 tiles; blocks of 2 × 2, the last row and column clipped.
+        assert_eq!(g.block_of(0, 2), vec![0, 1, 4, 5]);
+        assert_eq!(g.block_of(5, 2), vec![0, 1, 4, 5]);
+        assert_eq!(g.block_of(11, 2), vec![10, 11]);
+        assert_eq!(g.block_of(7, 4), (0..12).collect::<Vec<_>>());
+        assert_eq!(g.block_of(6, 1), vec![6]);
+        for side in [1, 2, 3, 4, 8] {
+            for i in 0..g.count() {
+                let b = g.block_of(i, side);
+                assert!(b.contains(&i));
+                let r = g.span(b[0], b[b.len() - 1]);
+                let area: usize = b.iter().map(|&j| g.rect(j).area()).sum();
+                assert_eq!(r.area(), area, "block {b:?} spans {r:?}");
+                assert_eq!(g.tiles_of(&r), Some(b));
+            }
+        }
+        assert_eq!(
+            g.span(9, 11),
+            TileRect {
+                x: 32,
+                y: 64,
+                w: 68,
+                h: 6
+            }
+        );
+        // Rects that are not whole tiles of the grid.
+        for (x, y, w, h) in [
+            (0, 0, 16, 32),
+            (0, 0, 48, 32),
+            (16, 0, 32, 32),
+            (0, 0, 64, 40),
+            (96, 0, 8, 32),
+            (0, 64, 32, 7),
+            (0, 0, 0, 32),
+            (u32::MAX, 0, 32, 32),
+            (0, u32::MAX - 3, 32, 32),
+        ] {
+            assert_eq!(
+                g.tiles_of(&TileRect { x, y, w, h }),
+                None,
+                "{x} {y} {w} {h}"
+            );
+        }
     }
 
     #[test]
