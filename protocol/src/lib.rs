@@ -72,6 +72,12 @@ pub const CONTROL_FRAME_MAX: usize = 256 << 10;
 /// more than the little it can delay the control messages behind it
 /// (32 KB take 2.6 ms at 100 Mbit/s, well under a millisecond on a LAN).
 pub const SMALL_BULK_MAX: usize = 32 << 10;
+/// A tile's pixels go on the control stream up to this size: a block of
+/// 128 × 128 colors with its hits (the scheduler's largest block by
+/// default), so that a block costs no more than the tiles it replaces.
+/// Only the display's connections carry tiles, and nothing else waits
+/// behind them there.
+pub const SMALL_TILE_MAX: usize = 80 << 10;
 /// Largest frame on a bulk stream (one voxel or one tile result).
 pub const BULK_FRAME_MAX: usize = MAX_VOXEL_BYTES + ENVELOPE_OVERHEAD;
 

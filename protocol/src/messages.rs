@@ -535,10 +535,14 @@ impl MessageKind {
 
     /// Whether a message of this kind `encoded` bytes long travels on a
     /// stream of its own: large bulk messages do (see
-    /// [`crate::SMALL_BULK_MAX`]); everything else goes in order on the
-    /// control stream.
+    /// [`crate::SMALL_BULK_MAX`], tiles [`crate::SMALL_TILE_MAX`]);
+    /// everything else goes in order on the control stream.
     pub fn own_stream(self, encoded: usize) -> bool {
-        self.is_bulk() && encoded > crate::SMALL_BULK_MAX
+        let small = match self {
+            MessageKind::TileDone => crate::SMALL_TILE_MAX,
+            _ => crate::SMALL_BULK_MAX,
+        };
+        self.is_bulk() && encoded > small
     }
 
     /// Whether this kind may be large (a voxel, a tile's pixels), so that

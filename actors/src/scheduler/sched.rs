@@ -765,10 +765,6 @@ impl Scheduler {
         };
         let s = r.stats;
         let area: u64 = r.tile.area() as u64;
-        // A block's hits go to the tile each shows in (the first one if it
-        // cannot be placed).
-        let camera = (tiles.len() > 1)
-            .then(|| kernel_camera(&frame.camera, frame.grid.width, frame.grid.height).basis());
         let hits: Vec<Vec3> = r
             .hits
             .as_slice()
@@ -777,6 +773,23 @@ impl Scheduler {
             // A peer's floats: only finite ones can be projected.
             .filter(|h| h.is_finite())
             .collect();
+        // A block's hits go to the tile each shows in (its first tile if
+        // it cannot be placed): per hit, the position of that tile in
+        // `tiles`.
+        let place: Vec<usize> = if tiles.len() == 1 {
+            vec![0; hits.len()]
+        } else {
+            let cam = kernel_camera(&frame.camera, frame.grid.width, frame.grid.height).basis();
+            hits.iter()
+                .map(|&h| {
+                    cam.project(h)
+                        .filter(|&(x, y)| x >= 0.0 && y >= 0.0)
+                        .and_then(|(x, y)| frame.grid.tile_at(x as u32, y as u32))
+                        .and_then(|t| tiles.iter().position(|&i| i == t))
+                        .unwrap_or(0)
+                })
+                .collect()
+        };
         let mut done = 0u32;
         for (k, &i) in tiles.iter().enumerate() {
             let t = &mut frame.tiles[i];
@@ -798,21 +811,12 @@ impl Scheduler {
             frame.costs[i] = share;
             frame.times.push(share);
             frame.owners[i] = Some(node.clone());
-            let mine: Vec<Vec3> = match &camera {
-                None => hits.clone(),
-                Some(cam) => hits
-                    .iter()
-                    .copied()
-                    .filter(|&h| {
-                        let at = cam
-                            .project(h)
-                            .filter(|&(x, y)| x >= 0.0 && y >= 0.0)
-                            .and_then(|(x, y)| frame.grid.tile_at(x as u32, y as u32))
-                            .filter(|t| tiles.contains(t));
-                        at.map_or(k == 0, |t| t == i)
-                    })
-                    .collect(),
-            };
+            let mine: Vec<Vec3> = hits
+                .iter()
+                .zip(&place)
+                .filter(|&(_, &p)| p == k)
+                .map(|(&h, _)| h)
+                .collect();
             frame.hits[i] = spread(mine, MAX_TILE_HITS);
         }
         if done == 0 {
