@@ -527,11 +527,10 @@ fn finish_tile(r: TileResult, prefetched: u64, summary: &mut ClientSummary) -> O
                 .iter()
                 .map(|p| p.to_array())
                 .collect();
-            let pixels = img.rgba.as_flattened().to_vec();
             let done = TileDone {
                 frame: job.frame,
                 tile: job.tile,
-                pixels: Blob(pixels),
+                pixels: Blob(img.rgba.into_flattened()),
                 depth: job.want_depth.then_some(PackedF32(img.depth)),
                 prim_ids: job.want_prim_ids.then_some(PackedU32(img.primid)),
                 stats,
