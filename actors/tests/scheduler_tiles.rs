@@ -1301,3 +1301,30 @@ async fn scheduler_gives_a_block_the_time_of_its_tiles_before_its_deadline() {
     assert_eq!(d.stats.reassigned, 0, "{sizes:?}");
     c.stop().await;
 }
+
+#[tokio::test(start_paused = true)]
+async fn scheduler_gives_blocks_of_nobodys_tiles_only_to_a_client_holding_few() {
+    // One client asking 32 tiles ahead, slow to render: in the first frame
+    // no tile has an owner yet, and it gets two blocks of them, then
+    // single tiles; not the whole frame in 32 blocks.
+    let deep = Behaviour {
+        slots: 32,
+        render: Duration::from_secs(1),
+        ..Behaviour::normal()
+    };
+    let opts = SchedulerOptions {
+        max_block_px: 128,
+        ..options(true, Duration::from_secs(3600))
+    };
+    let (w, h) = (640, 480);
+    let c = cluster(opts, w, h, &[deep]);
+    c.camera(0).await;
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    let grid = TileGrid::new(w, h, 32);
+    let (tiles, sizes) = blocks_in(&c, &grid, 0);
+    assert_eq!(sizes.len(), 32, "{sizes:?}");
+    assert_eq!(sizes[..2], [16, 16], "{sizes:?}");
+    assert!(sizes[2..].iter().all(|&s| s == 1), "{sizes:?}");
+    assert_eq!(tiles.len(), 32 + 30);
+    c.stop().await;
+}

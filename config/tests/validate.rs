@@ -36,6 +36,9 @@ fn the_local_example_loads() {
         (16, Some(32))
     );
     assert!(!cfg.links.client_store.is_shaped());
+    assert_eq!(cfg.scheduler.max_block_px, 128);
+    let unset = example_text().replacen("max_block_px = 128", "", 1);
+    let cfg = Config::parse(&unset).unwrap();
     assert_eq!(cfg.scheduler.max_block_px, 128, "the default");
 }
 
@@ -132,10 +135,7 @@ fn mistakes_name_their_key() {
         "over 64",
     );
     assert_names(
-        broken(
-            "tile_deadline_ms = 2000",
-            "tile_deadline_ms = 2000\nmax_block_px = 512",
-        ),
+        broken("max_block_px = 128", "max_block_px = 512"),
         "scheduler.max_block_px",
         "more than 256",
     );

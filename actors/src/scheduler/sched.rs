@@ -463,15 +463,30 @@ impl Frame {
         Some(self.groups[g].remove(k))
     }
 
-    /// Tile `i`, just picked for a client, with the fresh tiles of its
+    /// Tile `i`, just picked for client `c`, with the fresh tiles of its
     /// aligned block that sit in the same queue, while the frame has many
     /// fresh tiles left (see [`BLOCK_GUIDE`]): one assignment, one
     /// message each way, for what would otherwise be up to 16. The block
     /// shrinks as the frame's fresh tiles run out, so that the last tiles
-    /// still balance the clients' loads one by one. Returns the tiles,
-    /// row by row, taken out of their queues.
-    fn block(&mut self, i: usize, clients: usize, max_px: u32) -> Vec<usize> {
-        if self.tiles[i].state != State::Fresh {
+    /// still balance the clients' loads one by one. Only a tile of `c`'s
+    /// own queue or of nobody's comes with a block: a tile taken from
+    /// another client's queue comes alone, as that client's cache holds
+    /// what it shows. A block of nobody's tiles (the first frame, content
+    /// just come into view) goes to a client that holds at most n tiles
+    /// (`held`): a client asks ahead by the assignment, and without this
+    /// two clients asking 32 ahead take in the whole first frame, then the
+    /// next, before any hit of the first tells where each one's content
+    /// lies (a cold walk fetched a quarter more). Returns the tiles, row
+    /// by row, taken out of their queues.
+    fn block(
+        &mut self,
+        i: usize,
+        c: &Name,
+        held: usize,
+        clients: usize,
+        max_px: u32,
+    ) -> Vec<usize> {
+        if self.tiles[i].state != State::Fresh || self.affine[i].as_ref().is_some_and(|o| o != c) {
             return vec![i];
         }
         let ts = self.grid.tile_size;
@@ -481,7 +496,8 @@ impl Frame {
         }
         while side > 1 {
             let n = (side * side) as usize;
-            if self.fresh_left >= n * clients.max(1) * BLOCK_GUIDE {
+            let nobodys = self.affine[i].is_none();
+            if (!nobodys || held <= n) && self.fresh_left >= n * clients.max(1) * BLOCK_GUIDE {
                 let block = self.grid.block_of(i, side);
                 let queue = &self.affine[i];
                 if block.iter().all(|&j| {
@@ -690,6 +706,13 @@ impl Scheduler {
                     }
                 };
                 let open = self.frames.len();
+                // Tiles this client holds (see `Frame::block`).
+                let held =
+                    if self.opts.affinity && self.opts.max_block_px >= 2 * self.opts.tile_size {
+                        self.frames.values().map(|f| f.held_by(node)).sum()
+                    } else {
+                        0
+                    };
                 let Some(frame) = self.frames.values_mut().nth(at) else {
                     continue;
                 };
@@ -708,7 +731,7 @@ impl Scheduler {
                 state.credits -= 1;
                 progress = true;
                 let tiles = if self.opts.affinity {
-                    frame.block(i, n, self.opts.max_block_px)
+                    frame.block(i, node, held, n, self.opts.max_block_px)
                 } else {
                     vec![i]
                 };
