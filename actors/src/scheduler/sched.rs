@@ -108,6 +108,8 @@ struct Previous {
     owners: Vec<Option<Name>>,
     /// Per tile, the world positions of some of its hits.
     hits: Vec<Vec<Vec3>>,
+    /// Per tile, whether its packets met a voxel their client lacked.
+    missed: Vec<bool>,
 }
 
 struct Frame {
@@ -150,6 +152,12 @@ struct Frame {
     owners: Vec<Option<Name>>,
     /// Per tile, the world positions of some of its hits, as reported.
     hits: Vec<Vec<Vec3>>,
+    /// Per tile, whether its packets met a voxel their client lacked, as
+    /// reported (for a block: any of its tiles).
+    missed: Vec<bool>,
+    /// Per tile, whether the previous frame rendered it without a miss
+    /// (on the same grid): only such tiles go out in blocks.
+    warm: Vec<bool>,
     /// Affinity: per tile, the client whose cache should hold what it
     /// shows (see [`Frame::reprojection`]).
     affine: Vec<Option<Name>>,
@@ -197,6 +205,8 @@ impl Frame {
             costs: vec![0; n],
             owners: vec![None; n],
             hits: vec![Vec::new(); n],
+            missed: vec![false; n],
+            warm: vec![false; n],
             affine: vec![None; n],
             votes: vec![Vec::new(); n],
             times: Vec::new(),
@@ -272,6 +282,10 @@ impl Frame {
             self.pool = fresh;
             return;
         }
+        self.warm = match prev.filter(|p| p.grid == self.grid) {
+            Some(p) => p.missed.iter().map(|&m| !m).collect(),
+            None => vec![false; self.tiles.len()],
+        };
         (self.affine, self.votes) = match prev {
             Some(p) => self.reprojection(p),
             None => (
@@ -468,25 +482,21 @@ impl Frame {
     /// fresh tiles left (see [`BLOCK_GUIDE`]): one assignment, one
     /// message each way, for what would otherwise be up to 16. The block
     /// shrinks as the frame's fresh tiles run out, so that the last tiles
-    /// still balance the clients' loads one by one. Only a tile of `c`'s
-    /// own queue or of nobody's comes with a block: a tile taken from
-    /// another client's queue comes alone, as that client's cache holds
-    /// what it shows. A block of nobody's tiles (the first frame, content
-    /// just come into view) goes to a client that holds at most n tiles
-    /// (`held`): a client asks ahead by the assignment, and without this
-    /// two clients asking 32 ahead take in the whole first frame, then the
-    /// next, before any hit of the first tells where each one's content
-    /// lies (a cold walk fetched a quarter more). Returns the tiles, row
-    /// by row, taken out of their queues.
-    fn block(
-        &mut self,
-        i: usize,
-        c: &Name,
-        held: usize,
-        clients: usize,
-        max_px: u32,
-    ) -> Vec<usize> {
-        if self.tiles[i].state != State::Fresh || self.affine[i].as_ref().is_some_and(|o| o != c) {
+    /// still balance the clients' loads one by one. Blocks are made of
+    /// tiles that the previous frame rendered without a miss: there a
+    /// tile is quick and its messages weigh; where voxels were missing,
+    /// tiles are slow and uneven, and they go one by one so that the
+    /// clients share them evenly (a cold walk took in whole frames as
+    /// blocks before any of their hits told where each client's content
+    /// lies, and fetched a quarter more). Only a tile of `c`'s own queue
+    /// or of nobody's comes with a block: a tile taken from another
+    /// client's queue comes alone, as that client's cache holds what it
+    /// shows. Returns the tiles, row by row, taken out of their queues.
+    fn block(&mut self, i: usize, c: &Name, clients: usize, max_px: u32) -> Vec<usize> {
+        if self.tiles[i].state != State::Fresh
+            || !self.warm[i]
+            || self.affine[i].as_ref().is_some_and(|o| o != c)
+        {
             return vec![i];
         }
         let ts = self.grid.tile_size;
@@ -496,12 +506,14 @@ impl Frame {
         }
         while side > 1 {
             let n = (side * side) as usize;
-            let nobodys = self.affine[i].is_none();
-            if (!nobodys || held <= n) && self.fresh_left >= n * clients.max(1) * BLOCK_GUIDE {
+            if self.fresh_left >= n * clients.max(1) * BLOCK_GUIDE {
                 let block = self.grid.block_of(i, side);
                 let queue = &self.affine[i];
                 if block.iter().all(|&j| {
-                    j == i || (self.tiles[j].state == State::Fresh && self.affine[j] == *queue)
+                    j == i
+                        || (self.tiles[j].state == State::Fresh
+                            && self.warm[j]
+                            && self.affine[j] == *queue)
                 }) {
                     for &j in block.iter().filter(|&&j| j != i) {
                         match queue.as_ref().and_then(|o| self.group_of.get(o)) {
@@ -706,13 +718,6 @@ impl Scheduler {
                     }
                 };
                 let open = self.frames.len();
-                // Tiles this client holds (see `Frame::block`).
-                let held =
-                    if self.opts.affinity && self.opts.max_block_px >= 2 * self.opts.tile_size {
-                        self.frames.values().map(|f| f.held_by(node)).sum()
-                    } else {
-                        0
-                    };
                 let Some(frame) = self.frames.values_mut().nth(at) else {
                     continue;
                 };
@@ -731,7 +736,7 @@ impl Scheduler {
                 state.credits -= 1;
                 progress = true;
                 let tiles = if self.opts.affinity {
-                    frame.block(i, node, held, n, self.opts.max_block_px)
+                    frame.block(i, node, n, self.opts.max_block_px)
                 } else {
                     vec![i]
                 };
@@ -834,6 +839,7 @@ impl Scheduler {
             frame.costs[i] = share;
             frame.times.push(share);
             frame.owners[i] = Some(node.clone());
+            frame.missed[i] = s.misses > 0;
             let mine: Vec<Vec3> = hits
                 .iter()
                 .zip(&place)
@@ -921,6 +927,7 @@ impl Scheduler {
                 costs: frame.costs,
                 owners: frame.owners,
                 hits: frame.hits,
+                missed: frame.missed,
             });
             // Frames still being assigned go by the newest costs and owners.
             for f in self.frames.values_mut() {
