@@ -250,8 +250,9 @@ pub struct SchedulerConfig {
     /// With affinity, early in a frame a client gets an aligned block of
     /// its tiles as one assignment, at most this many pixels a side (its
     /// pixels come back in one message; the blocks shrink to single tiles
-    /// as the frame's tiles run out). A value under twice the tile size
-    /// hands out single tiles only.
+    /// as the frame's tiles run out, and only tiles the previous frame
+    /// rendered without a miss go in blocks). A value under twice the
+    /// tile size hands out single tiles only.
     #[serde(default = "default_max_block_px")]
     pub max_block_px: u32,
 }
