@@ -1136,6 +1136,29 @@ fn blocks_in(c: &Cluster, grid: &TileGrid, frame: u64) -> (HashMap<usize, Vec<us
     (tiles, sizes)
 }
 
+/// Options with blocks of up to 4 × 4 tiles of 32 pixels.
+fn block_options(deadline: Duration) -> SchedulerOptions {
+    SchedulerOptions {
+        max_block_px: 128,
+        ..options(true, deadline)
+    }
+}
+
+/// The sizes, in tiles, of the assignments `client` got in `frame`.
+fn blocks_of(c: &Cluster, grid: &TileGrid, frame: u64, client: usize) -> Vec<usize> {
+    c.events()
+        .iter()
+        .filter_map(|e| match e {
+            Event::Assigned {
+                frame: f,
+                client: k,
+                tile,
+            } if *f == frame && *k == client => grid.tiles_of(tile).map(|b| b.len()),
+            _ => None,
+        })
+        .collect()
+}
+
 /// Clients whose tiles find everything in their caches.
 fn warm() -> Behaviour {
     Behaviour {
@@ -1147,10 +1170,7 @@ fn warm() -> Behaviour {
 #[tokio::test(start_paused = true)]
 async fn scheduler_hands_out_blocks_of_tiles_early_and_single_tiles_last() {
     let (w, h) = (640, 480);
-    let opts = SchedulerOptions {
-        max_block_px: 128,
-        ..options(true, Duration::from_secs(60))
-    };
+    let opts = block_options(Duration::from_secs(60));
     let mut c = cluster(opts, w, h, &[warm(), warm()]);
     let done = c.run_sequential(4).await;
     let grid = TileGrid::new(w, h, 32);
@@ -1226,10 +1246,7 @@ async fn scheduler_hands_out_single_tiles_where_the_last_frame_missed() {
     // Clients whose every tile meets a voxel they lack: slow, uneven
     // tiles, shared one by one.
     let (w, h) = (640, 480);
-    let opts = SchedulerOptions {
-        max_block_px: 128,
-        ..options(true, Duration::from_secs(60))
-    };
+    let opts = block_options(Duration::from_secs(60));
     let mut c = cluster(opts, w, h, &[Behaviour::normal(), Behaviour::normal()]);
     c.run_sequential(3).await;
     let grid = TileGrid::new(w, h, 32);
@@ -1251,10 +1268,7 @@ async fn scheduler_reassigns_each_tile_of_a_lost_clients_block() {
         silent_from: 1,
         ..warm()
     };
-    let opts = SchedulerOptions {
-        max_block_px: 128,
-        ..options(true, Duration::from_secs(3600))
-    };
+    let opts = block_options(Duration::from_secs(3600));
     let mut c = cluster(opts, w, h, &[warm(), mute]);
     c.run_sequential(1).await;
     c.camera(1).await;
@@ -1275,18 +1289,7 @@ async fn scheduler_reassigns_each_tile_of_a_lost_clients_block() {
     .await
     .expect("the mute client got a block");
     let grid = TileGrid::new(w, h, 32);
-    let held: usize = c
-        .events()
-        .iter()
-        .filter_map(|e| match e {
-            Event::Assigned {
-                frame: 1,
-                client: 1,
-                tile,
-            } => grid.tiles_of(tile).map(|b| b.len()),
-            _ => None,
-        })
-        .sum();
+    let held: usize = blocks_of(&c, &grid, 1, 1).iter().sum();
     assert!(held >= 4, "{held} tiles");
     c.net.disconnect(&name("scheduler"), &names::client_node(1));
     let d = c.frame_done().await;
@@ -1321,26 +1324,12 @@ async fn scheduler_gives_a_block_the_time_of_its_tiles_before_its_deadline() {
         cost: |t| cost(5000)(t),
         ..warm()
     };
-    let opts = SchedulerOptions {
-        max_block_px: 128,
-        ..options(true, Duration::from_millis(10))
-    };
+    let opts = block_options(Duration::from_millis(10));
     let (w, h) = (640, 256);
     let mut c = cluster(opts, w, h, &[quick, slower]);
     let done = c.run_sequential(2).await;
     let grid = TileGrid::new(w, h, 32);
-    let blocks_of_1: Vec<usize> = c
-        .events()
-        .iter()
-        .filter_map(|e| match e {
-            Event::Assigned {
-                frame: 1,
-                client: 1,
-                tile,
-            } => grid.tiles_of(tile).map(|b| b.len()),
-            _ => None,
-        })
-        .collect();
+    let blocks_of_1 = blocks_of(&c, &grid, 1, 1);
     assert!(blocks_of_1.iter().any(|&n| n >= 4), "{blocks_of_1:?}");
     for d in &done {
         assert_eq!(d.stats.tiles as usize, grid.count());

@@ -16,7 +16,10 @@
 //!   hit samples reprojected into the new camera); costliest first by that
 //!   frame's times. Then the tiles of others that show most of its content
 //!   or border its region (only for a client holding at most one tile);
-//!   without affinity, a random tile. Tiles of a lost client, or
+//!   without affinity, a random tile. Early in a frame a tile of the
+//!   client's own queue goes out with the rest of its aligned block (up to
+//!   `max_block_px` a side) where the last frame rendered those tiles
+//!   without a miss: one message each way for up to 16 tiles. Tiles of a lost client, or
 //!   outstanding past `max(tile_deadline, 8 × median tile time)`, go to
 //!   another client (the first report wins). A complete frame yields
 //!   [`FrameDone`] for the display and [`TileOwners`] for the prefetcher.

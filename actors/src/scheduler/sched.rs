@@ -515,9 +515,12 @@ impl Frame {
                             && self.warm[j]
                             && self.affine[j] == *queue)
                 }) {
+                    // Out of the queue they share with `i`: `c`'s group, or
+                    // nobody's.
+                    let group = queue.as_ref().and_then(|o| self.group_of.get(o)).copied();
                     for &j in block.iter().filter(|&&j| j != i) {
-                        match queue.as_ref().and_then(|o| self.group_of.get(o)) {
-                            Some(&g) => self.groups[g].retain(|&k| k != j),
+                        match group {
+                            Some(g) => self.groups[g].retain(|&k| k != j),
                             None => {
                                 self.unowned.remove(&self.ranks[j]);
                             }
