@@ -182,12 +182,39 @@ pub fn peek_kind(body: &[u8]) -> Result<MessageKind, ProtocolError> {
     MessageKind::from_tag(tag).ok_or(ProtocolError::UnknownKind(tag))
 }
 
+/// Room for an envelope's names, fields and length prefixes beyond
+/// [`Message::payload_len`].
+const ENVELOPE_SLACK: usize = 256;
+
+/// postcard's output in a vector allocated once at about the encoded size:
+/// grown from empty, a tile's pixels were copied several times over.
+struct Presized(Vec<u8>);
+
+impl postcard::ser_flavors::Flavor for Presized {
+    type Output = Vec<u8>;
+
+    fn try_extend(&mut self, data: &[u8]) -> postcard::Result<()> {
+        self.0.extend_from_slice(data);
+        Ok(())
+    }
+
+    fn try_push(&mut self, data: u8) -> postcard::Result<()> {
+        self.0.push(data);
+        Ok(())
+    }
+
+    fn finalize(self) -> postcard::Result<Vec<u8>> {
+        Ok(self.0)
+    }
+}
+
 /// Encodes an envelope, refusing one whose message is invalid or over its
 /// kind's limit (so a sender learns of it, not the receiver).
 pub fn encode_envelope(env: &Envelope) -> Result<Vec<u8>, ProtocolError> {
     let kind = env.msg.kind();
     env.msg.validate()?;
-    let body = postcard::to_stdvec(env).map_err(malformed("envelope"))?;
+    let out = Presized(Vec::with_capacity(env.msg.payload_len() + ENVELOPE_SLACK));
+    let body = postcard::serialize_with_flavor(env, out).map_err(malformed("envelope"))?;
     let limit = kind.max_wire_size();
     if body.len() > limit {
         return Err(ProtocolError::Oversized {

@@ -722,6 +722,25 @@ impl Message {
         }
     }
 
+    /// Bytes of the message's large arrays (pixels, depths, ids, voxel and
+    /// manifest data, hits), about its encoded size less a few fields.
+    pub fn payload_len(&self) -> usize {
+        match self {
+            Message::TileDone(t) => {
+                t.pixels.0.len()
+                    + t.depth.as_ref().map_or(0, |d| d.0.len() * 4)
+                    + t.prim_ids.as_ref().map_or(0, |p| p.0.len() * 4)
+                    + t.hits.as_slice().len() * 12
+            }
+            Message::VoxelLoaded(v) => v.data.0.len(),
+            Message::ManifestData(m) => m.data.0.len(),
+            Message::TileReport(r) => r.hits.as_slice().len() * 12,
+            Message::PrefetchHint(h) => h.voxels.0.len() * 4,
+            Message::TileOwners(o) => o.hits.0.len() * 4 + o.hit_counts.0.len(),
+            _ => 0,
+        }
+    }
+
     /// Checks what types cannot: sizes agree, values are finite and in range.
     pub fn validate(&self) -> Result<(), ProtocolError> {
         let kind = self.kind();

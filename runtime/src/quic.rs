@@ -488,17 +488,22 @@ async fn control_writer(conn: Connection, mut rx: mpsc::Receiver<Bytes>) {
         s.write_all(&[STREAM_CONTROL])
             .await
             .map_err(|e| e.to_string())?;
-        let mut wr = FramedWrite::new(s, codec(CONTROL_FRAME_MAX));
+        // Each frame goes to quinn as its length and its body, both handed
+        // over without a copy (a length-delimited codec copied every body,
+        // a tile's pixels included, into its buffer, and quinn copied that
+        // again); the reader's codec sees the same bytes.
+        let mut chunks: Vec<Bytes> = Vec::new();
         while let Some(frame) = rx.recv().await {
-            wr.feed(frame).await.map_err(|e| e.to_string())?;
-            // Batch what is already queued into one flush.
+            chunks.clear();
+            push_frame(&mut chunks, frame)?;
+            // What is already queued goes in the same write.
             for _ in 0..64 {
                 match rx.try_recv() {
-                    Ok(f) => wr.feed(f).await.map_err(|e| e.to_string())?,
+                    Ok(f) => push_frame(&mut chunks, f)?,
                     Err(_) => break,
                 }
             }
-            SinkExt::<Bytes>::flush(&mut wr)
+            s.write_all_chunks(&mut chunks)
                 .await
                 .map_err(|e| e.to_string())?;
         }
@@ -508,6 +513,18 @@ async fn control_writer(conn: Connection, mut rx: mpsc::Receiver<Bytes>) {
     if let Err(e) = result {
         debug!(error = %e, "control writer stopped");
     }
+}
+
+/// Appends a control frame (as the reader's length-delimited codec takes
+/// it: a big-endian u32 length, then the body) to `chunks`.
+fn push_frame(chunks: &mut Vec<Bytes>, body: Bytes) -> Result<(), String> {
+    let len = u32::try_from(body.len())
+        .ok()
+        .filter(|&n| n as usize <= CONTROL_FRAME_MAX)
+        .ok_or_else(|| format!("control frame of {} bytes is over the limit", body.len()))?;
+    chunks.push(Bytes::copy_from_slice(&len.to_be_bytes()));
+    chunks.push(body);
+    Ok(())
 }
 
 async fn accept_streams(conn: Connection, bus: Weak<Inner>, local: Name, peer: Name) {

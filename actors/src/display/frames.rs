@@ -42,14 +42,67 @@ impl std::fmt::Display for TileRejected {
     }
 }
 
+/// Which pixels of a frame arrived: one bit each. At 640×480 that is
+/// 38 KB, which stays in the caches and on the heap; a byte per pixel
+/// (300 KB, fresh pages every frame) had the display waiting on memory in
+/// its check of each tile row.
+#[derive(Debug)]
+struct Coverage(Vec<u64>);
+
+impl Coverage {
+    fn new(pixels: usize) -> Coverage {
+        Coverage(vec![0; pixels.div_ceil(64)])
+    }
+
+    /// The words of pixels `start..start + len` with the bits in range.
+    fn words(start: usize, len: usize) -> impl Iterator<Item = (usize, u64)> {
+        let end = start + len;
+        (start / 64..end.div_ceil(64)).map(move |w| {
+            let lo = start.max(w * 64) - w * 64;
+            let hi = end.min(w * 64 + 64) - w * 64;
+            let mask = if hi - lo == 64 {
+                u64::MAX
+            } else {
+                ((1u64 << (hi - lo)) - 1) << lo
+            };
+            (w, mask)
+        })
+    }
+
+    fn any(&self, start: usize, len: usize) -> bool {
+        Self::words(start, len).any(|(w, m)| self.0[w] & m != 0)
+    }
+
+    fn set_all(&mut self, start: usize, len: usize) {
+        for (w, m) in Self::words(start, len) {
+            self.0[w] |= m;
+        }
+    }
+
+    fn get(&self, i: usize) -> bool {
+        self.0[i / 64] >> (i % 64) & 1 != 0
+    }
+
+    fn set(&mut self, i: usize) {
+        self.0[i / 64] |= 1 << (i % 64);
+    }
+}
+
+/// Color of a pixel never received.
+const MISSING: [u8; 4] = [0, 0, 0, 255];
+
+/// Images kept for reuse: about the frames in flight.
+const MAX_SPARE_IMAGES: usize = 4;
+
 /// A frame being assembled.
 #[derive(Debug)]
 pub(crate) struct PendingFrame {
     pub frame: u64,
+    /// Pixels not covered yet may hold an older frame's (a reused buffer).
     pub rgba: Vec<[u8; 4]>,
     pub depth: Option<Vec<f32>>,
     pub primid: Option<Vec<u32>>,
-    covered: Vec<bool>,
+    covered: Coverage,
     /// Pixels covered so far (each counted once).
     pub covered_count: usize,
     /// The scheduler's report, once it came.
@@ -61,13 +114,14 @@ pub(crate) struct PendingFrame {
 }
 
 impl PendingFrame {
-    fn new(frame: u64, pixels: usize) -> PendingFrame {
+    fn new(frame: u64, rgba: Vec<[u8; 4]>) -> PendingFrame {
+        let pixels = rgba.len();
         PendingFrame {
             frame,
-            rgba: vec![[0, 0, 0, 255]; pixels],
+            rgba,
             depth: None,
             primid: None,
-            covered: vec![false; pixels],
+            covered: Coverage::new(pixels),
             covered_count: 0,
             done: None,
             completed_at: None,
@@ -77,7 +131,7 @@ impl PendingFrame {
 
     /// Whether every pixel is in.
     pub fn pixels_complete(&self) -> bool {
-        self.covered_count == self.covered.len()
+        self.covered_count == self.rgba.len()
     }
 
     fn check_complete(&mut self, now: Instant) {
@@ -118,6 +172,9 @@ pub(crate) struct Frames {
     pending: BTreeMap<u64, PendingFrame>,
     /// The next frame to hand out, in order.
     next_out: u64,
+    /// Images of frames shown, to assemble the next ones in: a fresh one
+    /// every frame is a megabyte of new pages to fault in and clear.
+    spare: Vec<Vec<[u8; 4]>>,
 }
 
 impl Frames {
@@ -127,6 +184,7 @@ impl Frames {
             height,
             pending: BTreeMap::new(),
             next_out: 0,
+            spare: Vec::new(),
         }
     }
 
@@ -136,10 +194,19 @@ impl Frames {
 
     /// Starts buffering `frame` (its camera was just sent).
     pub fn open(&mut self, frame: u64) {
+        if self.pending.contains_key(&frame) {
+            return;
+        }
         let n = self.pixels();
-        self.pending
-            .entry(frame)
-            .or_insert_with(|| PendingFrame::new(frame, n));
+        let rgba = self.spare.pop().unwrap_or_else(|| vec![MISSING; n]);
+        self.pending.insert(frame, PendingFrame::new(frame, rgba));
+    }
+
+    /// Takes back a shown frame's pixels for a later frame.
+    pub fn recycle(&mut self, rgba: Vec<[u8; 4]>) {
+        if rgba.len() == self.pixels() && self.spare.len() < MAX_SPARE_IMAGES {
+            self.spare.push(rgba);
+        }
     }
 
     /// Frames opened and not handed out yet.
@@ -200,10 +267,10 @@ impl Frames {
             let y = r.y as usize + row;
             let line = y * w as usize + r.x as usize;
             let cols = r.w as usize;
-            if !f.covered[line..line + cols].contains(&true) {
+            if !f.covered.any(line, cols) {
                 // A row nobody sent before (nearly always): copied whole.
                 let src = row * cols;
-                f.covered[line..line + cols].fill(true);
+                f.covered.set_all(line, cols);
                 new += cols;
                 f.rgba[line..line + cols]
                     .as_flattened_mut()
@@ -218,11 +285,11 @@ impl Frames {
             }
             for col in 0..r.w as usize {
                 let dst = y * w as usize + r.x as usize + col;
-                if f.covered[dst] {
+                if f.covered.get(dst) {
                     continue;
                 }
                 let src = row * r.w as usize + col;
-                f.covered[dst] = true;
+                f.covered.set(dst);
                 new += 1;
                 let p = &t.pixels.0[src * 4..src * 4 + 4];
                 f.rgba[dst] = [p[0], p[1], p[2], p[3]];
@@ -280,9 +347,16 @@ impl Frames {
 
     /// Hands out the next frame as it is (missing pixels stay black).
     pub fn force_next(&mut self, now: Instant) -> Option<ReadyFrame> {
-        let f = self.pending.remove(&self.next_out)?;
+        let mut f = self.pending.remove(&self.next_out)?;
         self.next_out += 1;
-        let missing = f.covered.len() - f.covered_count;
+        let missing = f.rgba.len() - f.covered_count;
+        if missing > 0 {
+            for i in 0..f.rgba.len() {
+                if !f.covered.get(i) {
+                    f.rgba[i] = MISSING;
+                }
+            }
+        }
         let completed_at = f.completed_at.unwrap_or(now);
         let (image, stats) = f.into_image();
         Some(ReadyFrame {
@@ -360,5 +434,52 @@ mod tests {
             [1.0, 1.0, 2.0, 2.0, f32::INFINITY, 2.0, 2.0, 2.0]
         );
         assert_eq!(img.primid.unwrap(), [10, 10, 20, 20, u32::MAX, 20, 20, 20]);
+    }
+
+    #[test]
+    fn a_reused_image_shows_none_of_its_old_pixels() {
+        let now = Instant::now();
+        let mut f = Frames::new(4, 2);
+        f.open(0);
+        assert_eq!(f.add_tile(&tile(0, 0, 0, 4, 2, 9), now), Ok(8));
+        assert!(f.frame_done(0, FrameStats::default(), now));
+        let shown = f.pop_ready().unwrap().image;
+        assert_eq!(shown.rgba, [[9; 4]; 8]);
+        f.recycle(shown.rgba);
+        f.open(1);
+        assert_eq!(f.add_tile(&tile(1, 1, 0, 2, 1, 5), now), Ok(2));
+        assert!(f.frame_done(1, FrameStats::default(), now));
+        assert!(f.pop_ready().is_none(), "6 pixels missing");
+        let forced = f.force_next(now).unwrap();
+        assert_eq!(forced.missing_pixels, 6);
+        let mut want = [MISSING; 8];
+        want[1] = [5; 4];
+        want[2] = [5; 4];
+        assert_eq!(forced.image.rgba, want);
+        // An image of another size is not kept.
+        f.recycle(vec![[1; 4]; 3]);
+        f.open(2);
+        assert_eq!(f.pending[&2].rgba, [MISSING; 8]);
+    }
+
+    #[test]
+    fn coverage_bits_match_a_flag_per_pixel() {
+        // Rows of every length at every offset around word boundaries.
+        let n = 200;
+        for start in 0..n {
+            for len in 1..=(n - start).min(130) {
+                let mut c = Coverage::new(n);
+                let mut flags = vec![false; n];
+                c.set(start / 2);
+                flags[start / 2] = true;
+                let any = flags[start..start + len].contains(&true);
+                assert_eq!(c.any(start, len), any, "any({start}, {len})");
+                c.set_all(start, len);
+                flags[start..start + len].fill(true);
+                for (i, &f) in flags.iter().enumerate() {
+                    assert_eq!(c.get(i), f, "bit {i} after set_all({start}, {len})");
+                }
+            }
+        }
     }
 }

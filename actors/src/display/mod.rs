@@ -145,6 +145,11 @@ impl Output {
         })
     }
 
+    /// Whether frames are written as files (else only the metrics).
+    fn saves_frames(&self) -> bool {
+        self.frames_dir.is_some()
+    }
+
     /// Starts writing a frame's files.
     async fn write(
         &mut self,
@@ -364,23 +369,27 @@ impl Display {
         if let Some(out) = &mut self.output {
             let path = out.csv.path().to_path_buf();
             out.csv.append(&m).map_err(|e| io_err(&path, e))?;
-            let to_write = if keep {
-                image.clone()
-            } else {
-                std::mem::replace(
-                    &mut image,
-                    FrameImage {
-                        frame: m.frame,
-                        rgba: Vec::new(),
-                        depth: None,
-                        primid: None,
-                    },
-                )
-            };
-            out.write(w, h, to_write).await?;
+            if out.saves_frames() {
+                let to_write = if keep {
+                    image.clone()
+                } else {
+                    std::mem::replace(
+                        &mut image,
+                        FrameImage {
+                            frame: m.frame,
+                            rgba: Vec::new(),
+                            depth: None,
+                            primid: None,
+                        },
+                    )
+                };
+                out.write(w, h, to_write).await?;
+            }
         }
         if keep {
             self.summary.images.push(image);
+        } else {
+            self.frames.recycle(image.rgba);
         }
         self.summary.push(m);
         Ok(())

@@ -675,6 +675,9 @@ impl Scheduler {
         if n == 0 {
             return;
         }
+        // Tiles each client holds, counted once a call where needed (a
+        // count walks every tile of the open frames).
+        let mut held: Vec<Option<usize>> = vec![None; n];
         loop {
             let mut progress = false;
             for k in 0..n {
@@ -709,8 +712,11 @@ impl Scheduler {
                         // tiles fetch on the affinity walk; with at most
                         // one, 0.38.)
                         if self.opts.affinity {
-                            let held: usize = self.frames.values().map(|f| f.held_by(node)).sum();
-                            if held > 1 {
+                            let frames = &self.frames;
+                            let holds = *held[ci].get_or_insert_with(|| {
+                                frames.values().map(|f| f.held_by(node)).sum()
+                            });
+                            if holds > 1 {
                                 continue;
                             }
                         }
@@ -743,6 +749,9 @@ impl Scheduler {
                 } else {
                     vec![i]
                 };
+                if let Some(h) = held[ci].as_mut() {
+                    *h += tiles.len();
+                }
                 for &i in &tiles {
                     if self.opts.affinity {
                         let rank = frame.ranks[i];
