@@ -167,6 +167,9 @@ struct Frame {
     /// Time of each tile done so far, for the deadline's median.
     times: Vec<u64>,
     median: (usize, u64),
+    /// Per client, the tiles it holds (outstanding at it): kept with the
+    /// tiles' holders, as the scheduler asks after every message.
+    held: HashMap<Name, usize>,
 }
 
 impl Frame {
@@ -211,6 +214,7 @@ impl Frame {
             votes: vec![Vec::new(); n],
             times: Vec::new(),
             median: (0, 0),
+            held: HashMap::new(),
         }
     }
 
@@ -351,10 +355,37 @@ impl Frame {
 
     /// Tiles of this frame out at client `c`.
     fn held_by(&self, c: &Name) -> usize {
-        self.tiles
-            .iter()
-            .filter(|t| t.outstanding.iter().any(|h| h.client == *c))
-            .count()
+        let n = self.held.get(c).copied().unwrap_or(0);
+        debug_assert_eq!(
+            n,
+            self.tiles
+                .iter()
+                .filter(|t| t.outstanding.iter().any(|h| h.client == *c))
+                .count(),
+            "held count of {c}"
+        );
+        n
+    }
+
+    /// Tile `i` goes out to `h.client`.
+    fn hold(&mut self, i: usize, h: Holder) {
+        *self.held.entry(h.client.clone()).or_default() += 1;
+        self.tiles[i].outstanding.push(h);
+    }
+
+    /// Client `c` no longer holds tile `i` (it reported it, or is lost).
+    /// Returns whether it did.
+    fn release(&mut self, i: usize, c: &Name) -> bool {
+        let t = &mut self.tiles[i];
+        let before = t.outstanding.len();
+        t.outstanding.retain(|h| h.client != *c);
+        let released = t.outstanding.len() < before;
+        if released {
+            if let Some(n) = self.held.get_mut(c) {
+                *n = n.saturating_sub(before - t.outstanding.len());
+            }
+        }
+        released
     }
 
     fn has_work_for(&self, c: &Name) -> bool {
@@ -675,9 +706,6 @@ impl Scheduler {
         if n == 0 {
             return;
         }
-        // Tiles each client holds, counted once a call where needed (a
-        // count walks every tile of the open frames).
-        let mut held: Vec<Option<usize>> = vec![None; n];
         loop {
             let mut progress = false;
             for k in 0..n {
@@ -712,11 +740,8 @@ impl Scheduler {
                         // tiles fetch on the affinity walk; with at most
                         // one, 0.38.)
                         if self.opts.affinity {
-                            let frames = &self.frames;
-                            let holds = *held[ci].get_or_insert_with(|| {
-                                frames.values().map(|f| f.held_by(node)).sum()
-                            });
-                            if holds > 1 {
+                            let held: usize = self.frames.values().map(|f| f.held_by(node)).sum();
+                            if held > 1 {
                                 continue;
                             }
                         }
@@ -749,9 +774,6 @@ impl Scheduler {
                 } else {
                     vec![i]
                 };
-                if let Some(h) = held[ci].as_mut() {
-                    *h += tiles.len();
-                }
                 for &i in &tiles {
                     if self.opts.affinity {
                         let rank = frame.ranks[i];
@@ -763,11 +785,14 @@ impl Scheduler {
                         frame.fresh_left -= 1;
                     }
                     t.state = State::Out;
-                    t.outstanding.push(Holder {
-                        client: node.clone(),
-                        since: now,
-                        block: tiles.len() as u32,
-                    });
+                    frame.hold(
+                        i,
+                        Holder {
+                            client: node.clone(),
+                            since: now,
+                            block: tiles.len() as u32,
+                        },
+                    );
                 }
                 frame.first_assign.get_or_insert(now);
                 out.push(Out::Assign {
@@ -832,8 +857,8 @@ impl Scheduler {
         };
         let mut done = 0u32;
         for (k, &i) in tiles.iter().enumerate() {
+            frame.release(i, node);
             let t = &mut frame.tiles[i];
-            t.outstanding.retain(|h| h.client != *node);
             match t.state {
                 State::Done => continue,
                 State::Fresh => {
@@ -965,10 +990,9 @@ impl Scheduler {
         let mut returned = 0;
         for frame in self.frames.values_mut() {
             for i in 0..frame.tiles.len() {
-                let t = &mut frame.tiles[i];
-                let before = t.outstanding.len();
-                t.outstanding.retain(|h| h.client != *node);
-                if t.outstanding.len() < before && t.outstanding.is_empty() && t.state == State::Out
+                if frame.release(i, node)
+                    && frame.tiles[i].outstanding.is_empty()
+                    && frame.tiles[i].state == State::Out
                 {
                     Self::requeue(frame, i, why, node);
                     returned += 1;
