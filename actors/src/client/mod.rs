@@ -51,7 +51,7 @@ pub const MANIFEST_TIMEOUT: Duration = Duration::from_secs(5);
 /// How often retries and fetch timeouts are looked at.
 const TICK: Duration = Duration::from_millis(20);
 /// Pixels between a tile's hit samples, along x and y.
-const HIT_SPACING: u32 = 8;
+const HIT_SPACING: u32 = 16;
 /// Most hit samples along a side: the largest grid a report carries.
 const HIT_GRID_MAX: u32 = 16;
 const _: () = assert!((HIT_GRID_MAX * HIT_GRID_MAX) as usize <= MAX_REPORT_HITS);
@@ -514,10 +514,14 @@ fn finish_tile(r: TileResult, prefetched: u64, summary: &mut ClientSummary) -> O
                 bytes_fetched: bytes_fetched + prefetched,
                 stall_us: stall.as_micros() as u64,
             };
-            // One sample per 8 × 8 pixels (4 × 4 in a 32-pixel tile, 16 × 16
-            // = MAX_REPORT_HITS in a block of 4 × 4 such tiles): enough for
-            // the scheduler to tell whose content the next frame's tiles
-            // show.
+            // One sample per 16 × 16 pixels (2 × 2 in a 32-pixel tile, 8 × 8
+            // in a block of 4 × 4 such tiles): enough for the scheduler to
+            // tell whose content the next frame's tiles show. Each sample
+            // is handled about ten times on its way (sampled, sent, passed
+            // on by the display, placed, projected into the next cameras,
+            // sent to the prefetcher); at one per 8 × 8 pixels the nodes
+            // spent about a sixth more time, and the affinity walk fetched
+            // as much.
             let side = job.tile.w.max(job.tile.h);
             let hits: Vec<[f32; 3]> = img
                 .sample_hits(
