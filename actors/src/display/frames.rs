@@ -2,7 +2,9 @@
 //!
 //! Only the frames whose camera was sent and that are not yet handed out
 //! are buffered (at most `frames_ahead` of them), so memory is bounded by
-//! `frames_ahead × width × height` pixels whatever the peers send.
+//! `(frames_ahead + MAX_SPARE_IMAGES) × width × height` pixels whatever the
+//! peers send (a few images of frames shown are kept to assemble later
+//! frames in).
 
 use dray_protocol::{FrameStats, TileDone};
 use std::collections::BTreeMap;
