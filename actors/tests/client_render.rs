@@ -213,8 +213,13 @@ async fn a_client_whose_threads_run_dry_asks_for_more_tiles_ahead() {
     let Run { out, summary } = render_once(&db, opts, false, false, true).await;
     assert_same(&out, &want, "tiles asked ahead as the threads ran dry");
     assert_eq!(summary.tiles, 24);
+    // The fake scheduler hands out only what was asked for, so holding
+    // more than the first request's tiles means the client asked for more
+    // ahead. (How many it asked for in all depends on when it grew: this
+    // also required more than 27, and failed about one run in three when
+    // the growth came late in the frame.)
     assert!(
-        out.max_outstanding > THREADS + 1 && out.requested > THREADS + 1 + 24,
+        out.max_outstanding > THREADS + 1,
         "the client held at most {} tiles and asked for {} in all: it never asked for more ahead",
         out.max_outstanding,
         out.requested

@@ -1135,3 +1135,81 @@ async fn send(s: &mut Scheduler, mb: &Mailbox, o: Out) {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use dray_protocol::Reflective;
+
+    fn frame() -> Frame {
+        let start = FrameStart {
+            frame: 0,
+            camera: Camera {
+                eye: [0.0, 0.0, 5.0],
+                look: [0.0, 0.0, 0.0],
+                up: [0.0, 1.0, 0.0],
+                fov_y_deg: 50.0,
+            },
+            width: 128,
+            height: 64,
+            settings: RenderSettings {
+                shade: true,
+                shadows: false,
+                reflection_depth: 0,
+                light_dir: [1.0, 1.0, 1.0],
+                reflective: Reflective::All,
+                reflectance: 0.5,
+                voxel_colors: false,
+                want_depth: false,
+                want_prim_ids: false,
+            },
+        };
+        Frame::new(start, 32)
+    }
+
+    /// Tiles with `c` among their holders, counted over every tile.
+    fn counted(f: &Frame, c: &Name) -> usize {
+        f.tiles
+            .iter()
+            .filter(|t| t.outstanding.iter().any(|h| h.client == *c))
+            .count()
+    }
+
+    #[test]
+    fn held_counts_follow_the_tiles_holders() {
+        // Tiles going out (a tile held by two clients once reassigned)
+        // and coming back, in a scrambled order: the kept count of each
+        // client is the count over the tiles after every step.
+        let mut f = frame();
+        let clients: Vec<Name> = ["client-0", "client-1", "client-2"]
+            .iter()
+            .map(|n| Name::new(n).unwrap())
+            .collect();
+        let n = f.tiles.len();
+        let mut x = 7u32;
+        for step in 0..400 {
+            x = x.wrapping_mul(1_103_515_245).wrapping_add(12_345);
+            let i = (x >> 8) as usize % n;
+            let c = &clients[(x >> 20) as usize % clients.len()];
+            let holds = f.tiles[i].outstanding.iter().any(|h| h.client == *c);
+            if holds {
+                assert!(f.release(i, c), "step {step}");
+            } else if x % 3 == 0 {
+                assert!(!f.release(i, c), "step {step}: {c} did not hold tile {i}");
+            } else {
+                f.hold(
+                    i,
+                    Holder {
+                        client: c.clone(),
+                        since: Instant::now(),
+                        block: 1,
+                    },
+                );
+            }
+            for c in &clients {
+                assert_eq!(f.held_by(c), counted(&f, c), "step {step}, {c}");
+            }
+        }
+        assert!(clients.iter().any(|c| f.held_by(c) > 0));
+    }
+}
