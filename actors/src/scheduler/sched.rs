@@ -1194,7 +1194,7 @@ mod tests {
             let holds = f.tiles[i].outstanding.iter().any(|h| h.client == *c);
             if holds {
                 assert!(f.release(i, c), "step {step}");
-            } else if x % 3 == 0 {
+            } else if x.is_multiple_of(3) {
                 assert!(!f.release(i, c), "step {step}: {c} did not hold tile {i}");
             } else {
                 f.hold(
