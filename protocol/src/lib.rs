@@ -183,8 +183,8 @@ pub fn peek_kind(body: &[u8]) -> Result<MessageKind, ProtocolError> {
 }
 
 /// Room for an envelope's names, fields and length prefixes beyond
-/// [`Message::payload_len`].
-const ENVELOPE_SLACK: usize = 256;
+/// [`Message::payload_len`]: the encoder allocates the two at once.
+pub const ENVELOPE_SLACK: usize = 256;
 
 /// postcard's output in a vector allocated once at about the encoded size:
 /// grown from empty, a tile's pixels were copied several times over.

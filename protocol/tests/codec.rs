@@ -25,7 +25,7 @@ fn every_kind_round_trips_and_fits_its_limit() {
         // of a large message's bytes.
         if payload > 0 {
             assert!(
-                payload <= bytes.len() && bytes.len() <= payload + 256,
+                payload <= bytes.len() && bytes.len() <= payload + ENVELOPE_SLACK,
                 "{kind:?}: {payload} of {}",
                 bytes.len()
             );

@@ -356,15 +356,17 @@ impl Frame {
     /// Tiles of this frame out at client `c`.
     fn held_by(&self, c: &Name) -> usize {
         let n = self.held.get(c).copied().unwrap_or(0);
-        debug_assert_eq!(
-            n,
-            self.tiles
-                .iter()
-                .filter(|t| t.outstanding.iter().any(|h| h.client == *c))
-                .count(),
-            "held count of {c}"
-        );
+        debug_assert_eq!(n, self.holding(c), "held count of {c}");
         n
+    }
+
+    /// Tiles with `c` among their holders, counted over every tile: what
+    /// `held` keeps (checked in debug builds and tests).
+    fn holding(&self, c: &Name) -> usize {
+        self.tiles
+            .iter()
+            .filter(|t| t.outstanding.iter().any(|h| h.client == *c))
+            .count()
     }
 
     /// Tile `i` goes out to `h.client`.
@@ -1139,40 +1141,25 @@ async fn send(s: &mut Scheduler, mb: &Mailbox, o: Out) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use dray_protocol::Reflective;
+    use dray_protocol::examples::one_of_each;
 
+    /// A frame of 4 × 2 tiles, started by the protocol's example.
     fn frame() -> Frame {
-        let start = FrameStart {
-            frame: 0,
-            camera: Camera {
-                eye: [0.0, 0.0, 5.0],
-                look: [0.0, 0.0, 0.0],
-                up: [0.0, 1.0, 0.0],
-                fov_y_deg: 50.0,
+        let start = one_of_each(16)
+            .into_iter()
+            .find_map(|m| match m {
+                Message::FrameStart(f) => Some(f),
+                _ => None,
+            })
+            .expect("the examples hold a frame start");
+        Frame::new(
+            FrameStart {
+                width: 128,
+                height: 64,
+                ..start
             },
-            width: 128,
-            height: 64,
-            settings: RenderSettings {
-                shade: true,
-                shadows: false,
-                reflection_depth: 0,
-                light_dir: [1.0, 1.0, 1.0],
-                reflective: Reflective::All,
-                reflectance: 0.5,
-                voxel_colors: false,
-                want_depth: false,
-                want_prim_ids: false,
-            },
-        };
-        Frame::new(start, 32)
-    }
-
-    /// Tiles with `c` among their holders, counted over every tile.
-    fn counted(f: &Frame, c: &Name) -> usize {
-        f.tiles
-            .iter()
-            .filter(|t| t.outstanding.iter().any(|h| h.client == *c))
-            .count()
+            32,
+        )
     }
 
     #[test]
@@ -1207,7 +1194,7 @@ mod tests {
                 );
             }
             for c in &clients {
-                assert_eq!(f.held_by(c), counted(&f, c), "step {step}, {c}");
+                assert_eq!(f.held_by(c), f.holding(c), "step {step}, {c}");
             }
         }
         assert!(clients.iter().any(|c| f.held_by(c) > 0));
