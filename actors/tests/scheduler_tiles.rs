@@ -1259,6 +1259,40 @@ async fn scheduler_hands_out_single_tiles_where_the_last_frame_missed() {
 }
 
 #[tokio::test(start_paused = true)]
+async fn scheduler_treats_a_camera_cut_as_cold_and_keeps_each_clients_side() {
+    // Warm clients walk three frames, then the camera turns a quarter
+    // round (a cut: what the last frame showed is out of view), then
+    // stays there for a frame.
+    let (w, h) = (640, 480);
+    let opts = block_options(Duration::from_secs(60));
+    let mut c = cluster(opts, w, h, &[warm(), warm()]);
+    let turned = Camera {
+        eye: [3.0, 1.0, 5.0],
+        look: [13.0, 1.0, 5.0],
+        ..camera(3)
+    };
+    let cameras = [camera(0), camera(1), camera(2), camera(3), turned, turned];
+    for (k, cam) in cameras.iter().enumerate() {
+        c.send_camera(k as u64, *cam).await;
+        assert_eq!(c.frame_done().await.frame, k as u64);
+    }
+    let grid = TileGrid::new(w, h, 32);
+    let n = grid.count();
+    let sizes = |k: u64| blocks_in(&c, &grid, k).1;
+    assert!(sizes(3).contains(&16), "before the cut: {:?}", sizes(3));
+    // The last frame's tiles rendered without a miss, but they showed
+    // something else: the cut frame's tiles go one by one, as cold ones.
+    assert!(sizes(4).iter().all(|&s| s == 1), "the cut: {:?}", sizes(4));
+    // It continues from the cut frame: blocks again.
+    assert!(sizes(5).contains(&16), "after the cut: {:?}", sizes(5));
+    // Each client keeps its part of the screen across the cut.
+    let (before, after) = (blocks_in(&c, &grid, 3).0, blocks_in(&c, &grid, 4).0);
+    let kept = (0..n).filter(|i| before[i] == after[i]).count();
+    assert!(kept * 5 > n * 4, "{kept} of {n} tiles kept their client");
+    c.stop().await;
+}
+
+#[tokio::test(start_paused = true)]
 async fn scheduler_reassigns_each_tile_of_a_lost_clients_block() {
     let (w, h) = (640, 480);
     // Client 1 renders the first frame, then takes a block of the second

@@ -19,7 +19,10 @@
 //!   without affinity, a random tile. Early in a frame a tile of the
 //!   client's own queue goes out with the rest of its aligned block (up to
 //!   `max_block_px` a side) where the last frame rendered those tiles
-//!   without a miss: one message each way for up to 16 tiles. Tiles of a lost client, or
+//!   without a miss: one message each way for up to 16 tiles. After a cut
+//!   (the camera turned by more than half the field of view, or moved
+//!   beyond everything the last frame showed) the last frame is no guide:
+//!   each client keeps its part of the screen, and the tiles go one by one. Tiles of a lost client, or
 //!   outstanding past `max(tile_deadline, 8 × median tile time)`, go to
 //!   another client (the first report wins). A complete frame yields
 //!   [`FrameDone`] for the display and [`TileOwners`] for the prefetcher.

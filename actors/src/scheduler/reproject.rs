@@ -31,6 +31,34 @@ pub fn votes<K: Ord>(
     votes
 }
 
+/// Whether a frame seen through `then`, with hits at `hits`, is a guide to
+/// one seen through `now`: whether the camera moved on from it rather than
+/// cut to another view. After a cut (a jump along a camera path, a
+/// teleport, a sharp turn) the old frame's content is mostly out of view,
+/// and its owners, costs and misses say nothing about the new tiles. The
+/// camera cut when it turned by more than half the field of view, or when
+/// the eye moved farther than the old frame's farthest hit (everything it
+/// showed is behind or beside the new eye). Distances alone would not do:
+/// walking up to a wall, the hits are nearer than a frame's step.
+pub fn continues(
+    then: &CameraBasis,
+    now: &CameraBasis,
+    hits: impl IntoIterator<Item = Vec3>,
+) -> bool {
+    // `up` is scaled by the tangent of half the vertical field of view.
+    let half_fov = now.up.length().atan().min(then.up.length().atan());
+    if then.forward.dot(now.forward) < half_fov.cos() {
+        return false;
+    }
+    let farthest = hits
+        .into_iter()
+        .map(|p| p.distance(then.eye))
+        .filter(|d| d.is_finite())
+        .fold(None, |m: Option<f32>, d| Some(m.map_or(d, |m| m.max(d))));
+    // Only sky: turning decides alone.
+    farthest.is_none_or(|f| now.eye.distance(then.eye) <= f)
+}
+
 /// The client with the most samples in a tile; the first among equals, so
 /// that the same frames give the same assignment.
 pub fn most<K: Ord>(votes: &BTreeMap<K, u32>) -> Option<&K> {
@@ -74,5 +102,57 @@ mod tests {
         assert_eq!(most(&v[3 * 4 + 2]), Some(&"a"));
         assert_eq!(v.iter().map(|t| t.values().sum::<u32>()).sum::<u32>(), 4);
         assert_eq!(most(&v[5]), None);
+    }
+
+    #[test]
+    fn a_camera_that_turns_or_jumps_too_far_cuts() {
+        let cam = |eye: Vec3, look: Vec3| {
+            Camera {
+                eye,
+                look,
+                up: Vec3::Y,
+                fov_degrees: 50.0,
+                width: 64,
+                height: 48,
+            }
+            .basis()
+        };
+        let then = cam(Vec3::ZERO, Vec3::new(0.0, 0.0, -1.0));
+        // Content 10 to 30 ahead.
+        let hits: Vec<Vec3> = (10..=30)
+            .map(|z| Vec3::new(1.0, 0.0, -(z as f32)))
+            .collect();
+        let h = || hits.iter().copied();
+        // Walking on and turning a little.
+        assert!(continues(
+            &then,
+            &cam(Vec3::new(0.0, 0.0, -2.0), Vec3::new(0.2, 0.0, -3.0)),
+            h()
+        ));
+        // Turned by 30°, more than half the 50° field.
+        let turned = Vec3::new(30f32.to_radians().sin(), 0.0, -30f32.to_radians().cos());
+        assert!(!continues(&then, &cam(Vec3::ZERO, turned), h()));
+        // 20° is less than half the field.
+        let turned = Vec3::new(20f32.to_radians().sin(), 0.0, -20f32.to_radians().cos());
+        assert!(continues(&then, &cam(Vec3::ZERO, turned), h()));
+        // Moved farther than the farthest hit, looking the same way.
+        let far = Vec3::new(31.0, 0.0, 0.0);
+        assert!(!continues(
+            &then,
+            &cam(far, far + Vec3::new(0.0, 0.0, -1.0)),
+            h()
+        ));
+        let near = Vec3::new(29.0, 0.0, 0.0);
+        assert!(continues(
+            &then,
+            &cam(near, near + Vec3::new(0.0, 0.0, -1.0)),
+            h()
+        ));
+        // Only sky: turning decides alone.
+        assert!(continues(
+            &then,
+            &cam(far, far + Vec3::new(0.0, 0.0, -1.0)),
+            std::iter::empty()
+        ));
     }
 }
