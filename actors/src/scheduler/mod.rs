@@ -22,8 +22,8 @@
 //!   without a miss: one message each way for up to 16 tiles. After a cut
 //!   (the camera turned by more than half the field of view, or moved
 //!   beyond everything the last frame showed) the last frame is no guide:
-//!   each client keeps its part of the screen, and the tiles go one by one. Tiles of a lost client, or
-//!   outstanding past `max(tile_deadline, 8 × median tile time)`, go to
+//!   each client keeps its part of the screen, and the tiles go one by
+//!   one. Tiles of a lost client, or outstanding past `max(tile_deadline, 8 × median tile time)`, go to
 //!   another client (the first report wins). A complete frame yields
 //!   [`FrameDone`] for the display and [`TileOwners`] for the prefetcher.
 //! - [`run_prefetcher`]: fetches the manifest from a store, predicts the

@@ -38,8 +38,10 @@ pub fn votes<K: Ord>(
 /// and its owners, costs and misses say nothing about the new tiles. The
 /// camera cut when it turned by more than half the field of view, or when
 /// the eye moved farther than the old frame's farthest hit (everything it
-/// showed is behind or beside the new eye). Distances alone would not do:
-/// walking up to a wall, the hits are nearer than a frame's step.
+/// showed is behind or beside the new eye, as when it passes through a
+/// wall). The farthest hit, not a typical one: walking up to something,
+/// most hits are nearer than a frame's step (half the median distance cut
+/// 40 frames of the affinity benchmark's 60-frame walk).
 pub fn continues(
     then: &CameraBasis,
     now: &CameraBasis,
