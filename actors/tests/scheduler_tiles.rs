@@ -1260,7 +1260,7 @@ async fn scheduler_hands_out_single_tiles_where_the_last_frame_missed() {
 
 #[tokio::test(start_paused = true)]
 async fn scheduler_treats_a_camera_cut_as_cold_and_keeps_each_clients_side() {
-    // Warm clients walk three frames, then the camera turns a quarter
+    // Warm clients walk four frames, then the camera turns a quarter
     // round (a cut: what the last frame showed is out of view), then
     // stays there for a frame.
     let (w, h) = (640, 480);

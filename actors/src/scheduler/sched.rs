@@ -1185,6 +1185,79 @@ mod tests {
         )
     }
 
+    /// The last frame before `f`, through `camera`, every tile rendered
+    /// without a miss, its owners alternating in an order no region grown
+    /// along the curve would give, its costs rising with the tile index,
+    /// its hits 5 units in front of `camera`.
+    fn previous(f: &Frame, camera: Camera) -> Previous {
+        let n = f.tiles.len();
+        let basis = kernel_camera(&camera, f.grid.width, f.grid.height).basis();
+        let names = [
+            Name::new("client-b").unwrap(),
+            Name::new("client-a").unwrap(),
+        ];
+        Previous {
+            number: f.number - 1,
+            camera,
+            grid: f.grid,
+            costs: (0..n as u64).map(|i| 100 + i).collect(),
+            owners: (0..n).map(|i| Some(names[i % 2].clone())).collect(),
+            hits: (0..n)
+                .map(|i| {
+                    let r = f.grid.rect(i);
+                    let d = basis.direction(r.x + r.w / 2, r.y + r.h / 2);
+                    vec![basis.eye + d * 5.0]
+                })
+                .collect(),
+            missed: vec![false; n],
+        }
+    }
+
+    #[test]
+    fn after_a_cut_each_tile_stays_with_its_client_in_index_order_and_cold() {
+        let ahead = Camera {
+            eye: [0.0, 0.0, 5.0],
+            look: [0.0, 0.0, 0.0],
+            up: [0.0, 1.0, 0.0],
+            fov_y_deg: 50.0,
+        };
+        let opts = SchedulerOptions {
+            tile_size: 32,
+            affinity: true,
+            costliest_first: true,
+            max_block_px: 128,
+            tile_deadline: Duration::from_secs(10),
+            display: crate::names::display(),
+            assigner: crate::names::assigner(),
+            prefetcher: None,
+            seed: 1,
+        };
+        let mut f = frame();
+        f.camera = ahead;
+        // The same view: the last frame guides this one. Its tiles are
+        // warm (blocks may go out) and each queue gives its costliest first.
+        f.sort_fresh(Some(&previous(&f, ahead)), &opts);
+        assert!(f.warm.iter().all(|&w| w));
+        for q in &f.groups {
+            let costliest = q.iter().copied().max();
+            assert_eq!(q.last().copied(), costliest, "{q:?}");
+        }
+        // The last frame looked a quarter turn away.
+        let aside = Camera {
+            look: [10.0, 0.0, 5.0],
+            ..ahead
+        };
+        let prev = previous(&f, aside);
+        f.sort_fresh(Some(&prev), &opts);
+        assert_eq!(f.affine, prev.owners, "each tile with its last client");
+        assert!(f.warm.iter().all(|&w| !w), "no blocks");
+        for q in &f.groups {
+            let lowest = q.iter().copied().min();
+            assert_eq!(q.last().copied(), lowest, "index order: {q:?}");
+        }
+        assert_eq!(f.groups.iter().map(Vec::len).sum::<usize>(), f.tiles.len());
+    }
+
     #[test]
     fn held_counts_follow_the_tiles_holders() {
         // Tiles going out (a tile held by two clients once reassigned)
