@@ -75,12 +75,20 @@ const RECENT_CAMERAS: usize = 16;
 /// The camera of frame `next` predicted from the last one or two: eye and
 /// look point extrapolated linearly (per frame number), the rest as the
 /// latest. Falls back to the latest camera when the extrapolation is not a
-/// usable view.
+/// usable view, and after a cut (the camera turned by more than half the
+/// field of view from the one before, see [`super::reproject::continues`]):
+/// a jump is no motion to go on with (across the bench's jump back to the
+/// path's start it predicted a view as far beyond the start).
 pub fn predict_camera(prev: Option<(u64, &Camera)>, last: (u64, &Camera), next: u64) -> Camera {
     let (s1, c1) = last;
     let Some((s0, c0)) = prev.filter(|(s0, _)| *s0 < s1) else {
         return *c1;
     };
+    let basis = |c: &Camera| kernel_camera(c, 1, 1).basis();
+    // No hits at hand: by the turn alone.
+    if !super::reproject::continues(&basis(c0), &basis(c1), std::iter::empty()) {
+        return *c1;
+    }
     let k = (next.saturating_sub(s1)) as f32 / (s1 - s0) as f32;
     let ext = |a: [f32; 3], b: [f32; 3]| {
         let (a, b) = (Vec3::from_array(a), Vec3::from_array(b));
@@ -129,6 +137,12 @@ fn recipients(
             .map(|p| Vec3::new(p[0], p[1], p[2]))
             .filter(|p| p.is_finite());
         let then = kernel_camera(then, owners.width, owners.height).basis();
+        // After a cut the scheduler keeps each tile with its last client.
+        if !super::reproject::continues(&then, &basis, hits.clone()) {
+            return (0..grid.count())
+                .map(|t| owners.owners.0.get(t).copied().unwrap_or(u32::MAX))
+                .collect();
+        }
         if let Some(by) = super::sectors::assign(grid, &then, &basis, hits, &before) {
             return by
                 .into_iter()
@@ -425,6 +439,24 @@ mod tests {
     }
 
     #[test]
+    fn the_camera_goes_on_as_it_moved_but_not_across_a_cut() {
+        let at = |x: f32, look: [f32; 3]| Camera {
+            eye: [x, 0.0, 5.0],
+            look,
+            up: [0.0, 1.0, 0.0],
+            fov_y_deg: 50.0,
+        };
+        let (a, b) = (at(0.0, [0.0, 0.0, 0.0]), at(1.0, [1.0, 0.0, 0.0]));
+        // Moving sideways by 1 a frame: two frames on, 2 further.
+        let p = predict_camera(Some((4, &a)), (5, &b), 7);
+        assert_eq!((p.eye, p.look), ([3.0, 0.0, 5.0], [3.0, 0.0, 0.0]));
+        // Turned a quarter round since the frame before: the latest.
+        let turned = at(1.0, [11.0, 0.0, 5.0]);
+        assert_eq!(predict_camera(Some((4, &a)), (5, &turned), 6), turned);
+        assert_eq!(predict_camera(None, (5, &b), 6), b);
+    }
+
+    #[test]
     fn hints_follow_the_content_that_moves_into_a_tile() {
         let camera = Camera {
             eye: [0.0, 0.0, 5.0],
@@ -458,6 +490,55 @@ mod tests {
         assert_eq!(
             recipients(&owners, None, &camera, &grid),
             vec![0, u32::MAX, 1, 0]
+        );
+    }
+
+    #[test]
+    fn hints_go_to_each_tiles_last_client_after_a_cut() {
+        let then = Camera {
+            eye: [0.0, 0.0, 5.0],
+            look: [0.0, 0.0, 0.0],
+            up: [0.0, 1.0, 0.0],
+            fov_y_deg: 50.0,
+        };
+        // A quarter turn.
+        let now = Camera {
+            look: [10.0, 0.0, 5.0],
+            ..then
+        };
+        // What client 0 rendered in tile 0 lands in tile 3 of the new view
+        // (so reprojection would give tile 3 to client 0).
+        let b = kernel_camera(&now, 64, 64).basis();
+        let lands = [
+            b.eye + b.direction(40, 50) * 5.0,
+            b.eye + b.direction(60, 33) * 5.0,
+        ];
+        let owners = TileOwners {
+            frame: 1,
+            width: 64,
+            height: 64,
+            tile_size: 32,
+            owners: PackedU32(vec![0, u32::MAX, 1, 1]),
+            clients: BoundedVec::new(vec![
+                Name::new("client-0").unwrap(),
+                Name::new("client-1").unwrap(),
+            ])
+            .unwrap(),
+            hit_counts: Blob(vec![2, 0, 0, 0]),
+            hits: PackedF32(lands.iter().flat_map(|p| p.to_array()).collect()),
+            misses: 0,
+        };
+        let grid = super::super::tiles::TileGrid::new(64, 64, 32);
+        assert_eq!(
+            recipients(&owners, None, &now, &grid),
+            vec![0, u32::MAX, 1, 0],
+            "reprojected"
+        );
+        // Knowing the owners' camera, the cut shows: as the scheduler
+        // assigns, each tile to its last client.
+        assert_eq!(
+            recipients(&owners, Some(&then), &now, &grid),
+            vec![0, u32::MAX, 1, 1]
         );
     }
 
