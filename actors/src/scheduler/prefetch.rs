@@ -420,6 +420,7 @@ pub async fn run_prefetcher(
 mod tests {
     use super::*;
     use dray_protocol::{Blob, BoundedVec, PackedF32};
+    use dray_trace::camera::CameraBasis;
 
     #[test]
     fn warm_caches_plan_every_fourth_frame() {
@@ -456,6 +457,35 @@ mod tests {
         assert_eq!(predict_camera(None, (5, &b), 6), b);
     }
 
+    /// The owners of a 64 × 64 frame of four 32-pixel tiles (row by row)
+    /// rendered by `client-0` and `client-1`, with each tile's hits.
+    fn owners_2x2(owners: [u32; 4], hit_counts: [u8; 4], hits: &[Vec3]) -> TileOwners {
+        TileOwners {
+            frame: 1,
+            width: 64,
+            height: 64,
+            tile_size: 32,
+            owners: PackedU32(owners.to_vec()),
+            clients: BoundedVec::new(vec![
+                Name::new("client-0").unwrap(),
+                Name::new("client-1").unwrap(),
+            ])
+            .unwrap(),
+            hit_counts: Blob(hit_counts.to_vec()),
+            hits: PackedF32(hits.iter().flat_map(|p| p.to_array()).collect()),
+            misses: 0,
+        }
+    }
+
+    /// Two points 5 units from the eye of `b` (a 64 × 64 view) that it
+    /// sees in its tile 3 (bottom right).
+    fn in_tile_3(b: &CameraBasis) -> [Vec3; 2] {
+        [
+            b.eye + b.direction(40, 50) * 5.0,
+            b.eye + b.direction(60, 33) * 5.0,
+        ]
+    }
+
     #[test]
     fn hints_follow_the_content_that_moves_into_a_tile() {
         let camera = Camera {
@@ -466,25 +496,7 @@ mod tests {
         };
         let b = kernel_camera(&camera, 64, 64).basis();
         // What client 0 rendered in tile 0 is now in tile 3 (bottom right).
-        let moved = [
-            b.eye + b.direction(40, 50) * 5.0,
-            b.eye + b.direction(60, 33) * 5.0,
-        ];
-        let owners = TileOwners {
-            frame: 1,
-            width: 64,
-            height: 64,
-            tile_size: 32,
-            owners: PackedU32(vec![0, u32::MAX, 1, 1]),
-            clients: BoundedVec::new(vec![
-                Name::new("client-0").unwrap(),
-                Name::new("client-1").unwrap(),
-            ])
-            .unwrap(),
-            hit_counts: Blob(vec![2, 0, 0, 0]),
-            hits: PackedF32(moved.iter().flat_map(|p| p.to_array()).collect()),
-            misses: 0,
-        };
+        let owners = owners_2x2([0, u32::MAX, 1, 1], [2, 0, 0, 0], &in_tile_3(&b));
         let grid = super::super::tiles::TileGrid::new(64, 64, 32);
         // Tiles where nothing lands keep their owner (or none).
         assert_eq!(
@@ -509,25 +521,7 @@ mod tests {
         // What client 0 rendered in tile 0 lands in tile 3 of the new view
         // (so reprojection would give tile 3 to client 0).
         let b = kernel_camera(&now, 64, 64).basis();
-        let lands = [
-            b.eye + b.direction(40, 50) * 5.0,
-            b.eye + b.direction(60, 33) * 5.0,
-        ];
-        let owners = TileOwners {
-            frame: 1,
-            width: 64,
-            height: 64,
-            tile_size: 32,
-            owners: PackedU32(vec![0, u32::MAX, 1, 1]),
-            clients: BoundedVec::new(vec![
-                Name::new("client-0").unwrap(),
-                Name::new("client-1").unwrap(),
-            ])
-            .unwrap(),
-            hit_counts: Blob(vec![2, 0, 0, 0]),
-            hits: PackedF32(lands.iter().flat_map(|p| p.to_array()).collect()),
-            misses: 0,
-        };
+        let owners = owners_2x2([0, u32::MAX, 1, 1], [2, 0, 0, 0], &in_tile_3(&b));
         let grid = super::super::tiles::TileGrid::new(64, 64, 32);
         assert_eq!(
             recipients(&owners, None, &now, &grid),
@@ -553,28 +547,12 @@ mod tests {
         let (then, now) = (at(6.0), at(5.0));
         let b = kernel_camera(&then, 64, 64).basis();
         // Points on the plane z = 0 seen all over the earlier image.
-        let hits: Vec<f32> = [(8, 8), (56, 8), (8, 56), (56, 56), (20, 40), (44, 24)]
+        let hits: Vec<Vec3> = [(8, 8), (56, 8), (8, 56), (56, 56), (20, 40), (44, 24)]
             .iter()
-            .flat_map(|&(x, y)| {
-                (b.eye + b.direction(x, y) * 6.0 / b.direction(x, y).z.abs()).to_array()
-            })
+            .map(|&(x, y)| b.eye + b.direction(x, y) * 6.0 / b.direction(x, y).z.abs())
             .collect();
-        let owners = TileOwners {
-            frame: 1,
-            width: 64,
-            height: 64,
-            tile_size: 32,
-            // Left half client 1, right half client 0.
-            owners: PackedU32(vec![1, 0, 1, 0]),
-            clients: BoundedVec::new(vec![
-                Name::new("client-0").unwrap(),
-                Name::new("client-1").unwrap(),
-            ])
-            .unwrap(),
-            hit_counts: Blob(vec![2, 2, 1, 1]),
-            hits: PackedF32(hits),
-            misses: 0,
-        };
+        // Left half client 1, right half client 0.
+        let owners = owners_2x2([1, 0, 1, 0], [2, 2, 1, 1], &hits);
         let grid = super::super::tiles::TileGrid::new(64, 64, 32);
         // Two sectors around the centre, turned to keep the most tiles:
         // what the scheduler will assign.

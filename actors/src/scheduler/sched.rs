@@ -327,23 +327,22 @@ impl Frame {
             Some(p) => p.missed.iter().map(|&m| !m).collect(),
             None => vec![false; self.tiles.len()],
         };
-        (self.affine, self.votes) = match (guide, cut) {
-            (Some(p), _) => self.reprojection(p),
-            (None, Some(p)) if p.grid == self.grid => {
-                (p.owners.clone(), vec![Vec::new(); self.tiles.len()])
+        (self.affine, self.votes) = match guide {
+            Some(p) => self.reprojection(p),
+            None => {
+                let affine = match cut {
+                    Some(p) if p.grid == self.grid => Some(p.owners.clone()),
+                    Some(_) => None,
+                    // No frame has completed, but one is in flight: its
+                    // clients, so that the first frames' regions agree
+                    // (each grown on its own, the second frame's disagreed
+                    // with the first's by chance, and the cold walk's
+                    // second frame fetched 4-80 MB, against 4-11).
+                    None => self.first_guide.clone(),
+                };
+                let n = self.tiles.len();
+                (affine.unwrap_or_else(|| vec![None; n]), vec![Vec::new(); n])
             }
-            // No frame has completed, but one is in flight: its clients,
-            // so that the first frames' regions agree (each grown on its
-            // own, the second frame's disagreed with the first's by chance,
-            // and the cold walk's second frame fetched 4-80 MB, against 4-11).
-            (None, None) if self.first_guide.is_some() => (
-                self.first_guide.clone().unwrap_or_default(),
-                vec![Vec::new(); self.tiles.len()],
-            ),
-            _ => (
-                vec![None; self.tiles.len()],
-                vec![Vec::new(); self.tiles.len()],
-            ),
         };
         // While the image streams from a point in view (the camera travels
         // the way it looks), the clients' sectors around the image's
@@ -705,6 +704,18 @@ struct Scheduler {
 }
 
 impl Scheduler {
+    fn new(opts: SchedulerOptions) -> Scheduler {
+        Scheduler {
+            rng: Rng::new(opts.seed),
+            opts,
+            clients: Vec::new(),
+            frames: BTreeMap::new(),
+            prev: None,
+            summary: SchedulerSummary::default(),
+            rr: 0,
+        }
+    }
+
     fn client(&mut self, node: &Name) -> Option<&mut ClientState> {
         self.clients
             .iter_mut()
@@ -1104,15 +1115,7 @@ pub async fn run_scheduler(
     mut mb: Mailbox,
     opts: SchedulerOptions,
 ) -> Result<SchedulerSummary, ActorError> {
-    let mut s = Scheduler {
-        rng: Rng::new(opts.seed),
-        opts,
-        clients: Vec::new(),
-        frames: BTreeMap::new(),
-        prev: None,
-        summary: SchedulerSummary::default(),
-        rr: 0,
-    };
+    let mut s = Scheduler::new(opts);
     let mut tick = tokio::time::interval(DEADLINE_CHECK);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     let mut out = Vec::new();
@@ -1237,16 +1240,7 @@ mod tests {
 
     #[test]
     fn before_any_frame_completes_the_next_follows_the_one_in_flight() {
-        let opts = options();
-        let mut s = Scheduler {
-            rng: Rng::new(opts.seed),
-            opts,
-            clients: Vec::new(),
-            frames: BTreeMap::new(),
-            prev: None,
-            summary: SchedulerSummary::default(),
-            rr: 0,
-        };
+        let mut s = Scheduler::new(options());
         let mut out = Vec::new();
         s.frame_start(
             FrameStart {
