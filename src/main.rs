@@ -1,5 +1,7 @@
 //! The `dray` command line: it parses arguments and calls into the crates.
 
+mod allocator;
+
 use anyhow::{bail, Context, Result};
 use clap::{Parser, Subcommand};
 use dray_actors::cluster::{NodeOutcome, RunOptions};
@@ -641,6 +643,7 @@ fn generate(triangles: u64, seed: u64, out: &Path) -> Result<()> {
 }
 
 fn build_database(opts: &PreprocessOptions) -> Result<()> {
+    allocator::use_system();
     let progress = Progress::auto();
     let cancel = progress.cancel_flag();
     // Ctrl-C stops the build at its next check; the temporary directory is
