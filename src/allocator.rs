@@ -7,7 +7,7 @@
 //! voxel array (100–250 KB) a mapping of 4 KiB pages of its own. A far
 //! view's packets wait on node loads spread over 1.4 GB, and fewer TLB
 //! misses and denser placement made `dray render` of the 12.5 M plant from
-//! outside 8–11 % faster (about two thirds of it from the huge pages). The
+//! outside 8–11 % faster (about half of it from the huge pages). The
 //! cluster's nodes allocate a message buffer per tile, where glibc's
 //! large-block bins showed in profiles (a client's actor thread spent
 //! 15 % of its time in malloc and free): warm cluster frames 6 % faster.
