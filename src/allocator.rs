@@ -1,5 +1,5 @@
 //! The process's memory allocator: mimalloc for rendering, the system's
-//! (glibc's) for preprocessing.
+//! (glibc's) for preprocessing; and where huge pages are used.
 //!
 //! Why mimalloc (Zen 4, A/B against glibc's malloc in the same hour): it
 //! places each voxel's nodes and corners in large segments that it asks
@@ -7,18 +7,25 @@
 //! voxel array (100–250 KB) a mapping of 4 KiB pages of its own. A far
 //! view's packets wait on node loads spread over 1.4 GB, and fewer TLB
 //! misses and denser placement made `dray render` of the 12.5 M plant from
-//! outside 8–11 % faster (about half of it from the huge pages). The
-//! cluster's nodes allocate a message buffer per tile, where glibc's
-//! large-block bins showed in profiles (a client's actor thread spent
-//! 15 % of its time in malloc and free): warm cluster frames 6 % faster.
+//! outside 8–11 % faster (about half of it from the huge pages). Warm
+//! cluster clients (every voxel preloaded) rendered 6 % more frames a
+//! second, all of it from the huge pages.
 //!
-//! Why not for preprocessing: its memory budget (`--memory-mb`) holds for
-//! the whole process, and mimalloc's huge pages (committed 2 MiB at a
-//! time) and delayed return of freed memory took a 600 k-triangle build
-//! at 64 MiB to a peak of 134 MiB (38 with glibc); with both turned off
-//! it kept the budget but built the 1 M plant in 1.2–1.5 s against 1.0.
-//! [`use_system`] switches new allocations over before a build starts;
-//! every block goes back to the allocator that made it.
+//! Huge pages only where the voxels stay put ([`no_huge_pages`]): a client
+//! that streams voxels into its cache frees and allocates all the time,
+//! and mimalloc hands freed memory back to the kernel, so each fresh fault
+//! cleared a whole 2 MiB page. Half a streaming client's time went to
+//! clearing pages (`clear_page_erms`), and the cold walkthrough of the
+//! latency figure took 8.7–15.8 s against 8.4–9.4 with glibc; without huge
+//! pages, 8.3–8.7 s.
+//!
+//! Why not mimalloc for preprocessing: its memory budget (`--memory-mb`)
+//! holds for the whole process, and mimalloc's huge pages (committed
+//! 2 MiB at a time) and delayed return of freed memory took a 600
+//! k-triangle build at 64 MiB to a peak of 134 MiB (38 with glibc); with
+//! both turned off it kept the budget but built the 1 M plant in 1.2–1.5 s
+//! against 1.0. [`use_system`] switches new allocations over before a
+//! build starts; every block goes back to the allocator that made it.
 
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -33,6 +40,20 @@ static SYSTEM: AtomicBool = AtomicBool::new(false);
 /// before stay mimalloc's until freed).
 pub fn use_system() {
     SYSTEM.store(true, Ordering::Relaxed);
+}
+
+/// No transparent huge pages for this process from now on (its pages
+/// already mapped stay as they are), for a process whose voxels come and
+/// go. Linux only: elsewhere mimalloc decides. Inherited by the
+/// processes it starts.
+pub fn no_huge_pages() {
+    #[cfg(target_os = "linux")]
+    // SAFETY: PR_SET_THP_DISABLE takes a flag and touches no memory of
+    // ours; it can only fail on kernels without it (before 3.15), where
+    // the process goes on as it was.
+    unsafe {
+        libc::prctl(libc::PR_SET_THP_DISABLE, 1 as libc::c_ulong, 0, 0, 0);
+    }
 }
 
 struct Dispatch;

@@ -564,6 +564,9 @@ fn run(cli: Cli) -> Result<ExitCode> {
         } => {
             let mut cfg = dray_config::Config::load(&config)?;
             frames_to(&mut cfg, frames);
+            if !(role == Role::Client && cfg.clients.preload) {
+                allocator::no_huge_pages();
+            }
             let opts = RunOptions {
                 isa,
                 ..RunOptions::default()
@@ -589,6 +592,9 @@ fn run(cli: Cli) -> Result<ExitCode> {
         } => {
             let mut cfg = dray_config::Config::load(&config)?;
             frames_to(&mut cfg, frames);
+            if !cfg.clients.preload {
+                allocator::no_huge_pages();
+            }
             let opts = RunOptions {
                 clients,
                 isa,
