@@ -101,3 +101,45 @@ unsafe impl GlobalAlloc for Dispatch {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Blocks made before and after the switch are each resized and freed
+    /// by their own allocator (a block freed by the wrong one would abort
+    /// the process or corrupt its heap).
+    #[test]
+    fn every_block_goes_back_to_the_allocator_that_made_it() {
+        let before: Vec<u64> = (0..1000).collect();
+        assert!(mimallocs(before.as_ptr() as *mut u8));
+        use_system();
+        let mut after: Vec<u64> = (0..1000).collect();
+        assert!(!mimallocs(after.as_ptr() as *mut u8));
+        let mut grown = before.clone();
+        assert!(!mimallocs(grown.as_ptr() as *mut u8));
+        let mut before = before;
+        before.extend(0..100_000);
+        after.extend(0..100_000);
+        grown.extend(0..100_000);
+        assert!(
+            mimallocs(before.as_ptr() as *mut u8),
+            "a resized block stays mimalloc's"
+        );
+        assert!(!mimallocs(after.as_ptr() as *mut u8));
+        assert_eq!(before[..1000], after[..1000]);
+        assert_eq!(before.iter().sum::<u64>(), grown.iter().sum::<u64>());
+    }
+
+    #[cfg(target_os = "linux")]
+    #[test]
+    fn no_huge_pages_turns_them_off_for_the_process() {
+        no_huge_pages();
+        let status = std::fs::read_to_string("/proc/self/status").unwrap();
+        let line = status.lines().find(|l| l.starts_with("THP_enabled:"));
+        // Kernels before 5.0 do not report it.
+        if let Some(line) = line {
+            assert_eq!(line.split_whitespace().nth(1), Some("0"), "{line}");
+        }
+    }
+}
