@@ -8,7 +8,7 @@
 //! view's packets wait on node loads spread over 1.4 GB, and fewer TLB
 //! misses and denser placement made `dray render` of the 12.5 M plant from
 //! outside 8–11 % faster (about half of it from the huge pages). Warm
-//! cluster clients (every voxel preloaded) rendered 6 % more frames a
+//! cluster clients (every voxel preloaded) rendered 6–11 % more frames a
 //! second, all of it from the huge pages.
 //!
 //! Huge pages only where the voxels stay put ([`no_huge_pages`]): a client
@@ -17,7 +17,7 @@
 //! cleared a whole 2 MiB page. Half a streaming client's time went to
 //! clearing pages (`clear_page_erms`), and the cold walkthrough of the
 //! latency figure took 8.7–15.8 s against 8.4–9.4 with glibc; without huge
-//! pages, 8.3–8.7 s.
+//! pages, 8.1–8.6 s against 8.4–9.1.
 //!
 //! Why not mimalloc for preprocessing: its memory budget (`--memory-mb`)
 //! holds for the whole process, and mimalloc's huge pages (committed
