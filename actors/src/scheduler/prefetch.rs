@@ -486,14 +486,19 @@ mod tests {
         ]
     }
 
-    #[test]
-    fn hints_follow_the_content_that_moves_into_a_tile() {
-        let camera = Camera {
+    /// A camera 5 units up the z axis, looking at the origin.
+    fn towards_origin() -> Camera {
+        Camera {
             eye: [0.0, 0.0, 5.0],
             look: [0.0, 0.0, 0.0],
             up: [0.0, 1.0, 0.0],
             fov_y_deg: 50.0,
-        };
+        }
+    }
+
+    #[test]
+    fn hints_follow_the_content_that_moves_into_a_tile() {
+        let camera = towards_origin();
         let b = kernel_camera(&camera, 64, 64).basis();
         // What client 0 rendered in tile 0 is now in tile 3 (bottom right).
         let owners = owners_2x2([0, u32::MAX, 1, 1], [2, 0, 0, 0], &in_tile_3(&b));
@@ -507,12 +512,7 @@ mod tests {
 
     #[test]
     fn hints_go_to_each_tiles_last_client_after_a_cut() {
-        let then = Camera {
-            eye: [0.0, 0.0, 5.0],
-            look: [0.0, 0.0, 0.0],
-            up: [0.0, 1.0, 0.0],
-            fov_y_deg: 50.0,
-        };
+        let then = towards_origin();
         // A quarter turn.
         let now = Camera {
             look: [10.0, 0.0, 5.0],
