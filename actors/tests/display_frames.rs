@@ -6,8 +6,8 @@
 use dray_actors::display::{run_display, DisplayOptions, DisplaySummary, CSV_HEADER};
 use dray_actors::{names, ActorError};
 use dray_protocol::{
-    Blob, BoundedVec, Camera, ClientFrameStats, FrameDone, FrameStats, Message, Name, PackedF32,
-    PackedU32, Role, Shutdown, TileDone, TileRect, TileStats,
+    BoundedVec, Camera, ClientFrameStats, FrameDone, FrameStats, Message, Name, PackedF32,
+    PackedU32, Role, Shutdown, TileDone, TilePixels, TileRect, TileStats,
 };
 use dray_runtime::{Delivery, InProcNet, Mailbox};
 use std::time::Duration;
@@ -58,7 +58,7 @@ fn tile_done(frame: u64, r: TileRect, garbage: bool) -> TileDone {
     let mut ids = Vec::new();
     for y in r.y..r.y + r.h {
         for x in r.x..r.x + r.w {
-            px.extend_from_slice(&if garbage {
+            px.push(if garbage {
                 [0xEE; 4]
             } else {
                 pixel(frame, x, y)
@@ -70,7 +70,7 @@ fn tile_done(frame: u64, r: TileRect, garbage: bool) -> TileDone {
     TileDone {
         frame,
         tile: r,
-        pixels: Blob(px),
+        pixels: TilePixels::encode(&px),
         depth: Some(PackedF32(d)),
         prim_ids: Some(PackedU32(ids)),
         stats: TileStats {

@@ -7,7 +7,7 @@ use dray_actors::display::{
 };
 use dray_actors::{names, ActorError};
 use dray_protocol::{
-    Blob, Camera, FrameDone, Message, Name, Role, Shutdown, TileDone, TileRect, TileStats,
+    Camera, FrameDone, Message, Name, Role, Shutdown, TileDone, TilePixels, TileRect, TileStats,
 };
 use dray_runtime::{Delivery, InProcNet, Mailbox};
 use std::net::SocketAddr;
@@ -116,9 +116,7 @@ impl Fixture {
 
     /// Sends the whole frame as one tile, then its FrameDone.
     async fn complete(&mut self, frame: u64) {
-        let rgba: Vec<u8> = (0..W * H)
-            .flat_map(|i| [i as u8, frame as u8, 0, 255])
-            .collect();
+        let rgba: Vec<[u8; 4]> = (0..W * H).map(|i| [i as u8, frame as u8, 0, 255]).collect();
         let tile = TileDone {
             frame,
             tile: TileRect {
@@ -127,7 +125,7 @@ impl Fixture {
                 w: W,
                 h: H,
             },
-            pixels: Blob(rgba),
+            pixels: TilePixels::encode(&rgba),
             depth: None,
             prim_ids: None,
             stats: TileStats::default(),

@@ -141,7 +141,7 @@ async fn display_web_viewer_shows_the_displays_latest_frame() {
     use dray_actors::display::{run_display, DisplayOptions};
     use dray_actors::names;
     use dray_protocol::{
-        Blob, Camera, FrameDone, Message, Name, Role, Shutdown, TileDone, TileRect, TileStats,
+        Camera, FrameDone, Message, Name, Role, Shutdown, TileDone, TilePixels, TileRect, TileStats,
     };
     use dray_runtime::{Delivery, InProcNet};
 
@@ -197,7 +197,7 @@ async fn display_web_viewer_shows_the_displays_latest_frame() {
         seq = camera(assigner.recv().await);
     }
     assert_eq!(seq, Some(0));
-    let rgba: Vec<u8> = (0..32u8).flat_map(|i| [i, 2 * i, 3 * i, 255]).collect();
+    let rgba: Vec<[u8; 4]> = (0..32u8).map(|i| [i, 2 * i, 3 * i, 255]).collect();
     assigner
         .send(
             &names::display(),
@@ -209,7 +209,7 @@ async fn display_web_viewer_shows_the_displays_latest_frame() {
                     w: 8,
                     h: 4,
                 },
-                pixels: Blob(rgba.clone()),
+                pixels: TilePixels::encode(&rgba),
                 depth: None,
                 prim_ids: None,
                 stats: TileStats::default(),
@@ -238,7 +238,7 @@ async fn display_web_viewer_shows_the_displays_latest_frame() {
     assert_eq!(status, 200);
     let (w, h, px) = decode_png(&body);
     assert_eq!((w, h), (8, 4));
-    assert_eq!(px.as_flattened(), rgba.as_slice());
+    assert_eq!(px, rgba);
     let (_, _, body) = get(addr, "/metrics.json").await;
     let j: serde_json::Value = serde_json::from_slice(&body).unwrap();
     assert_eq!(j["frame"], 0);

@@ -46,7 +46,7 @@ pub fn one_of_each(voxel_bytes: usize) -> Vec<Message> {
         Message::TileDone(TileDone {
             frame: 7,
             tile,
-            pixels: Blob((0..n * 4).map(|i| (i * 7) as u8).collect()),
+            pixels: TilePixels::Rgba(Blob((0..n * 4).map(|i| (i * 7) as u8).collect())),
             depth: Some(PackedF32(
                 (0..n)
                     .map(|i| if i % 5 == 0 { f32::INFINITY } else { i as f32 })

@@ -23,10 +23,12 @@
 mod bounded;
 mod messages;
 mod name;
+mod pixels;
 
 pub use bounded::{Blob, BoundedVec, PackedF32, PackedU32};
 pub use messages::*;
 pub use name::{Name, NameError, MAX_NAME_LEN};
+pub use pixels::TilePixels;
 
 use serde::{Deserialize, Serialize};
 

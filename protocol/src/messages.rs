@@ -1,9 +1,9 @@
 //! The actor messages and their limits.
 
 use crate::{
-    Blob, BoundedVec, Name, PackedF32, PackedU32, ProtocolError, VoxelId, BULK_FRAME_MAX,
-    ENVELOPE_OVERHEAD, MAX_IMAGE_SIDE, MAX_PREFETCH_IDS, MAX_REFLECTION_DEPTH, MAX_STATS_CLIENTS,
-    MAX_TEXT_LEN, MAX_TILE_SIDE,
+    Blob, BoundedVec, Name, PackedF32, PackedU32, ProtocolError, TilePixels, VoxelId,
+    BULK_FRAME_MAX, ENVELOPE_OVERHEAD, MAX_IMAGE_SIDE, MAX_PREFETCH_IDS, MAX_REFLECTION_DEPTH,
+    MAX_STATS_CLIENTS, MAX_TEXT_LEN, MAX_TILE_SIDE,
 };
 use serde::{Deserialize, Serialize};
 
@@ -167,8 +167,8 @@ pub struct TileDone {
     pub frame: u64,
     /// The tile.
     pub tile: TileRect,
-    /// RGBA8 pixels, rows top to bottom, `tile.w * tile.h * 4` bytes.
-    pub pixels: Blob,
+    /// The colors, rows top to bottom, in the smallest exact encoding.
+    pub pixels: TilePixels,
     /// Per-pixel hit distance (+inf on a miss), when asked for.
     pub depth: Option<PackedF32>,
     /// Per-pixel original triangle index (0xFFFFFFFF on a miss), when asked for.
@@ -727,7 +727,7 @@ impl Message {
     pub fn payload_len(&self) -> usize {
         match self {
             Message::TileDone(t) => {
-                t.pixels.0.len()
+                t.pixels.bytes().len()
                     + t.depth.as_ref().map_or(0, |d| d.0.len() * 4)
                     + t.prim_ids.as_ref().map_or(0, |p| p.0.len() * 4)
                     + t.hits.as_slice().len() * 12
@@ -761,13 +761,13 @@ impl Message {
             Message::TileDone(t) => {
                 let n = t.tile.area();
                 check_tile(&t.tile, u32::MAX, u32::MAX).and_then(|_| {
-                    if t.pixels.0.len() != n * 4 {
+                    if !t.pixels.holds(n) {
                         Err(format!(
                             "{} pixel bytes for a {}x{} tile (want {})",
-                            t.pixels.0.len(),
+                            t.pixels.bytes().len(),
                             t.tile.w,
                             t.tile.h,
-                            n * 4
+                            n.saturating_mul(t.pixels.bytes_per_pixel())
                         ))
                     } else if t.depth.as_ref().is_some_and(|d| d.0.len() != n) {
                         Err("depth length differs from the tile's pixel count".into())

@@ -78,7 +78,7 @@ fn invalid_contents_are_refused_on_both_sides() {
     let Message::TileDone(mut t) = msgs.remove(2) else {
         panic!("third example is a tile result")
     };
-    t.pixels.0.pop();
+    t.pixels = TilePixels::Rgb(Blob(vec![0; t.tile.area() * 3 - 1]));
     let e = env(Message::TileDone(t.clone()));
     assert!(matches!(
         encode_envelope(&e),
@@ -278,7 +278,7 @@ fn maximal_messages_fit_their_limits() {
         Message::TileDone(TileDone {
             frame: u64::MAX,
             tile,
-            pixels: Blob(vec![255; n * 4]),
+            pixels: TilePixels::Rgba(Blob(vec![255; n * 4])),
             depth: Some(PackedF32(vec![f32::INFINITY; n])),
             prim_ids: Some(PackedU32(vec![u32::MAX; n])),
             stats,

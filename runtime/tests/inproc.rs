@@ -5,7 +5,7 @@ mod common;
 
 use common::*;
 use dray_protocol::examples::one_of_each;
-use dray_protocol::{encode_envelope, Address, Envelope, Message, Ping, Role};
+use dray_protocol::{encode_envelope, Address, Blob, Envelope, Message, Ping, Role, TilePixels};
 use dray_runtime::{Bus, Delivery, InProcNet, LinkShape, SendError};
 use std::time::Duration;
 use tokio::time::Instant;
@@ -79,7 +79,7 @@ async fn invalid_messages_are_refused_to_the_sender() {
     let Message::TileDone(mut t) = msgs.remove(2) else {
         unreachable!()
     };
-    t.pixels.0.truncate(3);
+    t.pixels = TilePixels::Rgba(Blob(vec![0; 3]));
     let to = Address::new(name("node-b"), name("two"));
     assert!(matches!(
         m.send(&to, Message::TileDone(t)).await,

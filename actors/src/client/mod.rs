@@ -31,8 +31,8 @@ use ahead::{Ahead, RoundTrips};
 use batch::TileBatch;
 use cache::VoxelCache;
 use dray_protocol::{
-    Address, AssignTile, Blob, BoundedVec, FetchManifest, Message, PackedF32, PackedU32,
-    RequestWork, TileDone, TileStats, MAX_REPORT_HITS,
+    Address, AssignTile, BoundedVec, FetchManifest, Message, PackedF32, PackedU32, RequestWork,
+    TileDone, TilePixels, TileStats, MAX_REPORT_HITS,
 };
 use dray_runtime::{ActorRef, Delivery, Mailbox};
 use dray_scene::db::manifest::Manifest;
@@ -534,7 +534,7 @@ fn finish_tile(r: TileResult, prefetched: u64, summary: &mut ClientSummary) -> O
             let done = TileDone {
                 frame: job.frame,
                 tile: job.tile,
-                pixels: Blob(img.rgba.into_flattened()),
+                pixels: TilePixels::encode(&img.rgba),
                 depth: job.want_depth.then_some(PackedF32(img.depth)),
                 prim_ids: job.want_prim_ids.then_some(PackedU32(img.primid)),
                 stats,

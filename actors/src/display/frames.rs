@@ -241,10 +241,10 @@ impl Frames {
             )));
         }
         let n = r.area();
-        if t.pixels.0.len() != n * 4 {
+        if !t.pixels.holds(n) {
             return Err(TileRejected::BadSize(format!(
                 "{} pixel bytes for a {}x{} tile",
-                t.pixels.0.len(),
+                t.pixels.bytes().len(),
                 r.w,
                 r.h
             )));
@@ -274,9 +274,7 @@ impl Frames {
                 let src = row * cols;
                 f.covered.set_all(line, cols);
                 new += cols;
-                f.rgba[line..line + cols]
-                    .as_flattened_mut()
-                    .copy_from_slice(&t.pixels.0[src * 4..(src + cols) * 4]);
+                t.pixels.copy_to(src, &mut f.rgba[line..line + cols]);
                 if let (Some(d), Some(out)) = (&t.depth, &mut f.depth) {
                     out[line..line + cols].copy_from_slice(&d.0[src..src + cols]);
                 }
@@ -293,8 +291,7 @@ impl Frames {
                 let src = row * r.w as usize + col;
                 f.covered.set(dst);
                 new += 1;
-                let p = &t.pixels.0[src * 4..src * 4 + 4];
-                f.rgba[dst] = [p[0], p[1], p[2], p[3]];
+                t.pixels.copy_to(src, &mut f.rgba[dst..dst + 1]);
                 if let (Some(d), Some(out)) = (&t.depth, &mut f.depth) {
                     out[dst] = d.0[src];
                 }
@@ -373,13 +370,13 @@ impl Frames {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use dray_protocol::{Blob, TileRect, TileStats};
+    use dray_protocol::{Blob, TilePixels, TileRect, TileStats};
 
     fn tile(frame: u64, x: u32, y: u32, w: u32, h: u32, v: u8) -> TileDone {
         TileDone {
             frame,
             tile: TileRect { x, y, w, h },
-            pixels: Blob(vec![v; (w * h * 4) as usize]),
+            pixels: TilePixels::Rgba(Blob(vec![v; (w * h * 4) as usize])),
             depth: None,
             prim_ids: None,
             stats: TileStats::default(),

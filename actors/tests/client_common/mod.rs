@@ -266,11 +266,12 @@ pub async fn render_frame(
                     let r = t.tile;
                     let depth = t.depth.expect("depth asked for").0;
                     let ids = t.prim_ids.expect("ids asked for").0;
+                    let rgba = t.pixels.to_rgba();
                     for row in 0..r.h {
                         for col in 0..r.w {
                             let k = (row * r.w + col) as usize;
                             let p = ((r.y + row) * WIDTH + r.x + col) as usize;
-                            out.rgba[p].copy_from_slice(&t.pixels.0[4 * k..4 * k + 4]);
+                            out.rgba[p] = rgba[k];
                             out.depth[p] = depth[k];
                             out.primid[p] = ids[k];
                         }
