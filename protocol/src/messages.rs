@@ -167,7 +167,7 @@ pub struct TileDone {
     pub frame: u64,
     /// The tile.
     pub tile: TileRect,
-    /// The colors, rows top to bottom, in the smallest exact encoding.
+    /// The colors, rows top to bottom, in the smaller exact encoding (RGB when opaque).
     pub pixels: TilePixels,
     /// Per-pixel hit distance (+inf on a miss), when asked for.
     pub depth: Option<PackedF32>,

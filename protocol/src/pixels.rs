@@ -1,11 +1,11 @@
-//! A tile's colors on the wire, in the smallest of three exact encodings.
+//! A tile's colors on the wire, in the smaller of two exact encodings.
 //!
-//! The renderer writes RGBA8, but its pixels are always opaque, and a frame
-//! of primary rays without shading is a grey depth image. Every byte a tile
-//! carries is copied, encrypted, sent in QUIC packets and acknowledged by
-//! a client and decrypted and copied again by the display, on the cores
-//! the render threads need: a grey tile goes as one byte a pixel, an opaque
-//! one as three, and only a tile with some alpha below 255 as four.
+//! The renderer writes RGBA8, but its pixels are always opaque. Every
+//! byte a tile carries is copied, encrypted, sent in QUIC packets and
+//! acknowledged by a client, and decrypted and copied again by the
+//! display, and on a 100 Mbit/s link it is what bounds the frame rate: an
+//! opaque tile goes as three bytes a pixel, and only a tile with some
+//! alpha below 255 as four.
 
 use crate::bounded::Blob;
 use serde::{Deserialize, Serialize};
@@ -14,8 +14,6 @@ use std::fmt;
 /// A tile's pixels, rows top to bottom.
 #[derive(Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub enum TilePixels {
-    /// Opaque grey pixels: one byte each, their red, green and blue.
-    Grey(Blob),
     /// Opaque pixels: red, green and blue.
     Rgb(Blob),
     /// Red, green, blue and alpha.
@@ -25,7 +23,6 @@ pub enum TilePixels {
 impl fmt::Debug for TilePixels {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         let name = match self {
-            TilePixels::Grey(_) => "Grey",
             TilePixels::Rgb(_) => "Rgb",
             TilePixels::Rgba(_) => "Rgba",
         };
@@ -34,28 +31,21 @@ impl fmt::Debug for TilePixels {
 }
 
 impl TilePixels {
-    /// Encodes `rgba` in the smallest encoding that keeps every pixel.
+    /// Encodes `rgba` in the smaller encoding that keeps every pixel.
     pub fn encode(rgba: &[[u8; 4]]) -> TilePixels {
-        // Two passes over a few KB beat one that branches per pixel: both
-        // checks are plain reductions the compiler vectorizes.
+        // A reduction without a branch per pixel, which the compiler
+        // vectorizes.
         let opaque = rgba.iter().fold(true, |all, p| all & (p[3] == 255));
-        if !opaque {
-            return TilePixels::Rgba(Blob(rgba.as_flattened().to_vec()));
-        }
-        let grey = rgba
-            .iter()
-            .fold(true, |all, p| all & (p[0] == p[1]) & (p[1] == p[2]));
-        if grey {
-            TilePixels::Grey(Blob(rgba.iter().map(|p| p[0]).collect()))
-        } else {
+        if opaque {
             TilePixels::Rgb(Blob(rgba.iter().flat_map(|p| [p[0], p[1], p[2]]).collect()))
+        } else {
+            TilePixels::Rgba(Blob(rgba.as_flattened().to_vec()))
         }
     }
 
     /// Bytes a pixel takes in this encoding.
     pub fn bytes_per_pixel(&self) -> usize {
         match self {
-            TilePixels::Grey(_) => 1,
             TilePixels::Rgb(_) => 3,
             TilePixels::Rgba(_) => 4,
         }
@@ -64,7 +54,7 @@ impl TilePixels {
     /// The encoded bytes.
     pub fn bytes(&self) -> &[u8] {
         match self {
-            TilePixels::Grey(b) | TilePixels::Rgb(b) | TilePixels::Rgba(b) => &b.0,
+            TilePixels::Rgb(b) | TilePixels::Rgba(b) => &b.0,
         }
     }
 
@@ -82,11 +72,6 @@ impl TilePixels {
     pub fn copy_to(&self, first: usize, out: &mut [[u8; 4]]) {
         let n = out.len();
         match self {
-            TilePixels::Grey(b) => {
-                for (o, &v) in out.iter_mut().zip(&b.0[first..first + n]) {
-                    *o = [v, v, v, 255];
-                }
-            }
             TilePixels::Rgb(b) => {
                 let src = b.0[first * 3..(first + n) * 3].chunks_exact(3);
                 for (o, p) in out.iter_mut().zip(src) {
@@ -114,13 +99,9 @@ mod tests {
     use proptest::prelude::*;
 
     #[test]
-    fn each_kind_of_tile_takes_its_smallest_encoding() {
-        let grey = [[7, 7, 7, 255], [0, 0, 0, 255], [255, 255, 255, 255]];
-        let p = TilePixels::encode(&grey);
-        assert!(matches!(p, TilePixels::Grey(_)));
-        assert_eq!(p.bytes(), &[7, 0, 255]);
-        let colored = [[7, 7, 7, 255], [1, 2, 3, 255]];
-        let p = TilePixels::encode(&colored);
+    fn each_kind_of_tile_takes_its_smaller_encoding() {
+        let opaque = [[7, 7, 7, 255], [1, 2, 3, 255]];
+        let p = TilePixels::encode(&opaque);
         assert!(matches!(p, TilePixels::Rgb(_)));
         assert_eq!(p.bytes(), &[7, 7, 7, 1, 2, 3]);
         let clear = [[7, 7, 7, 254], [1, 2, 3, 255]];
@@ -140,28 +121,19 @@ mod tests {
     proptest! {
         #[test]
         fn every_tile_comes_back_exactly(
-            grey in proptest::collection::vec((any::<u8>(), any::<bool>()), 0..64),
-            colored in any::<bool>(),
+            pixels in proptest::collection::vec((any::<[u8; 3]>(), any::<bool>()), 0..64),
             clear in any::<bool>(),
         ) {
-            // Grey pixels, some of them colored or translucent by the flags.
-            let rgba: Vec<[u8; 4]> = grey
+            // Opaque pixels, some of them translucent by the flag.
+            let rgba: Vec<[u8; 4]> = pixels
                 .iter()
-                .map(|&(v, odd)| {
-                    let g = if colored && odd { v.wrapping_add(1) } else { v };
-                    let a = if clear && odd { 128 } else { 255 };
-                    [v, g, v, a]
-                })
+                .map(|&([r, g, b], odd)| [r, g, b, if clear && odd { 128 } else { 255 }])
                 .collect();
             let p = TilePixels::encode(&rgba);
             prop_assert!(p.holds(rgba.len()));
             prop_assert_eq!(p.to_rgba(), rgba.clone());
-            // The smallest encoding that can hold them.
-            let want = match (clear && grey.iter().any(|g| g.1), colored && grey.iter().any(|g| g.1)) {
-                (true, _) => 4,
-                (false, true) => 3,
-                (false, false) => 1,
-            };
+            // The smaller encoding that can hold them.
+            let want = if clear && pixels.iter().any(|p| p.1) { 4 } else { 3 };
             prop_assert_eq!(p.bytes_per_pixel(), want);
         }
     }
