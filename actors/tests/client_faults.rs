@@ -88,6 +88,7 @@ fn options(mode: MissMode) -> ClientOptions {
         tiles_ahead: 2,
         max_tiles_ahead: 2,
         preload: false,
+        compress_pixels: true,
         isa: Isa::detect(),
         stores: routes(1),
         scheduler: names::scheduler(),

@@ -36,6 +36,7 @@ fn options(cache_bytes: u64, mode: MissMode, stores: usize) -> ClientOptions {
         tiles_ahead: TILES_AHEAD,
         max_tiles_ahead: TILES_AHEAD,
         preload: false,
+        compress_pixels: true,
         isa: Isa::detect(),
         stores: routes(stores),
         scheduler: names::scheduler(),

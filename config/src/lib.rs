@@ -398,6 +398,11 @@ pub struct ClientsConfig {
     /// memory (the rest, if any, is fetched on demand).
     #[serde(default)]
     pub preload: bool,
+    /// Send finished tiles' pixels compressed (zstd's fastest level) where
+    /// that makes them smaller: a few times fewer bytes on the links to
+    /// the display, for some of the clients' CPU.
+    #[serde(default = "yes")]
+    pub compress_pixels: bool,
     /// Host the clients bind (they dial out; the port is picked).
     #[serde(default = "default_bind")]
     pub bind: String,

@@ -167,7 +167,7 @@ pub struct TileDone {
     pub frame: u64,
     /// The tile.
     pub tile: TileRect,
-    /// The colors, rows top to bottom, in the smaller exact encoding (RGB when opaque).
+    /// The colors, rows top to bottom: RGB when opaque, perhaps compressed.
     pub pixels: TilePixels,
     /// Per-pixel hit distance (+inf on a miss), when asked for.
     pub depth: Option<PackedF32>,
@@ -761,14 +761,8 @@ impl Message {
             Message::TileDone(t) => {
                 let n = t.tile.area();
                 check_tile(&t.tile, u32::MAX, u32::MAX).and_then(|_| {
-                    if !t.pixels.holds(n) {
-                        Err(format!(
-                            "{} pixel bytes for a {}x{} tile (want {})",
-                            t.pixels.bytes().len(),
-                            t.tile.w,
-                            t.tile.h,
-                            n.saturating_mul(t.pixels.bytes_per_pixel())
-                        ))
+                    if let Err(e) = t.pixels.check_size(n) {
+                        Err(format!("a {}x{} tile: {e}", t.tile.w, t.tile.h))
                     } else if t.depth.as_ref().is_some_and(|d| d.0.len() != n) {
                         Err("depth length differs from the tile's pixel count".into())
                     } else if t.prim_ids.as_ref().is_some_and(|p| p.0.len() != n) {

@@ -76,6 +76,8 @@ pub struct ClientOptions {
     pub max_tiles_ahead: usize,
     /// Fetch every voxel that fits the cache before asking for tiles.
     pub preload: bool,
+    /// Compress finished tiles' pixels where that makes them smaller.
+    pub compress_pixels: bool,
     /// The tracing kernel.
     pub isa: dray_trace::render::Isa,
     /// Where voxels come from.
@@ -411,7 +413,10 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
                     resized |= ahead.tile_finished(r.idle, round_trips.round_trip());
                     let prefetched = loader.take_unattributed();
                     let frame = r.job.frame;
-                    batch.finished(frame, finish_tile(r, prefetched, &mut summary));
+                    batch.finished(
+                        frame,
+                        finish_tile(r, prefetched, opts.compress_pixels, &mut summary),
+                    );
                 }
                 if resized {
                     batch.set_ahead(ahead.current());
@@ -491,7 +496,12 @@ fn job(a: AssignTile, diagonal: f32, isa: dray_trace::render::Isa) -> TileJob {
 /// A finished tile's pixels for the display (none if it failed);
 /// `prefetched` bytes (fetched by hints, asked for by no tile) are charged
 /// to it so that frames count every byte fetched.
-fn finish_tile(r: TileResult, prefetched: u64, summary: &mut ClientSummary) -> Option<Message> {
+fn finish_tile(
+    r: TileResult,
+    prefetched: u64,
+    compress: bool,
+    summary: &mut ClientSummary,
+) -> Option<Message> {
     let TileResult {
         job,
         image,
@@ -534,7 +544,11 @@ fn finish_tile(r: TileResult, prefetched: u64, summary: &mut ClientSummary) -> O
             let done = TileDone {
                 frame: job.frame,
                 tile: job.tile,
-                pixels: TilePixels::encode(&img.rgba),
+                pixels: if compress {
+                    TilePixels::encode_compressed(&img.rgba)
+                } else {
+                    TilePixels::encode(&img.rgba)
+                },
                 depth: job.want_depth.then_some(PackedF32(img.depth)),
                 prim_ids: job.want_prim_ids.then_some(PackedU32(img.primid)),
                 stats,

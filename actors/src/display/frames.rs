@@ -241,14 +241,10 @@ impl Frames {
             )));
         }
         let n = r.area();
-        if !t.pixels.holds(n) {
-            return Err(TileRejected::BadSize(format!(
-                "{} pixel bytes for a {}x{} tile",
-                t.pixels.bytes().len(),
-                r.w,
-                r.h
-            )));
-        }
+        let pixels = t
+            .pixels
+            .decode(n)
+            .map_err(|e| TileRejected::BadSize(format!("a {}x{} tile: {e}", r.w, r.h)))?;
         if t.depth.as_ref().is_some_and(|d| d.0.len() != n)
             || t.prim_ids.as_ref().is_some_and(|p| p.0.len() != n)
         {
@@ -274,7 +270,7 @@ impl Frames {
                 let src = row * cols;
                 f.covered.set_all(line, cols);
                 new += cols;
-                t.pixels.copy_to(src, &mut f.rgba[line..line + cols]);
+                pixels.copy_to(src, &mut f.rgba[line..line + cols]);
                 if let (Some(d), Some(out)) = (&t.depth, &mut f.depth) {
                     out[line..line + cols].copy_from_slice(&d.0[src..src + cols]);
                 }
@@ -291,7 +287,7 @@ impl Frames {
                 let src = row * r.w as usize + col;
                 f.covered.set(dst);
                 new += 1;
-                t.pixels.copy_to(src, &mut f.rgba[dst..dst + 1]);
+                pixels.copy_to(src, &mut f.rgba[dst..dst + 1]);
                 if let (Some(d), Some(out)) = (&t.depth, &mut f.depth) {
                     out[dst] = d.0[src];
                 }

@@ -266,7 +266,7 @@ pub async fn render_frame(
                     let r = t.tile;
                     let depth = t.depth.expect("depth asked for").0;
                     let ids = t.prim_ids.expect("ids asked for").0;
-                    let rgba = t.pixels.to_rgba();
+                    let rgba = t.pixels.decode(r.area()).expect("pixels").to_rgba();
                     for row in 0..r.h {
                         for col in 0..r.w {
                             let k = (row * r.w + col) as usize;
