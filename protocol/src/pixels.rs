@@ -91,8 +91,9 @@ impl TilePixels {
     /// Encodes `rgba` as [`Self::encode`] does, then compresses opaque
     /// pixels when that makes them smaller.
     pub fn encode_compressed(rgba: &[[u8; 4]]) -> TilePixels {
-        let TilePixels::Rgb(raw) = Self::encode(rgba) else {
-            return Self::encode(rgba);
+        let raw = match Self::encode(rgba) {
+            TilePixels::Rgb(raw) => raw,
+            translucent => return translucent,
         };
         let packed = COMPRESSOR.with(|c| {
             let mut c = c.borrow_mut();
