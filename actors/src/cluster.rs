@@ -181,7 +181,7 @@ fn client_options(cfg: &Config, opts: &RunOptions) -> Result<ClientOptions, Clus
         tiles_ahead: c.tiles_ahead as usize,
         max_tiles_ahead: c.most_tiles_ahead() as usize,
         preload: c.preload,
-        compress_pixels: c.compress_pixels,
+        pixel_compression: c.pixel_compression,
         isa: opts.isa.unwrap_or_else(Isa::detect),
         stores: store_routes(cfg)?,
         scheduler: names::scheduler(),

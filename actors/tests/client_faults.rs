@@ -8,7 +8,7 @@ mod client_common;
 use client_common::*;
 use dray_actors::client::{run_client, ClientOptions};
 use dray_actors::{names, ActorError};
-use dray_protocol::{Blob, ManifestData, Message, Shutdown, VoxelError, VoxelLoaded};
+use dray_protocol::{Blob, Compression, ManifestData, Message, Shutdown, VoxelError, VoxelLoaded};
 use dray_runtime::{InProcNet, LinkShape, Mailbox, Role};
 use dray_scene::db::manifest::MANIFEST_FILE;
 use dray_scene::db::Database;
@@ -88,7 +88,7 @@ fn options(mode: MissMode) -> ClientOptions {
         tiles_ahead: 2,
         max_tiles_ahead: 2,
         preload: false,
-        compress_pixels: true,
+        pixel_compression: Compression::Lz4,
         isa: Isa::detect(),
         stores: routes(1),
         scheduler: names::scheduler(),

@@ -12,7 +12,7 @@ use client_common::*;
 use dray_actors::client::{run_client, ClientOptions, ClientSummary};
 use dray_actors::names;
 use dray_actors::Shard;
-use dray_protocol::{Message, Shutdown};
+use dray_protocol::{Compression, Message, Shutdown};
 use dray_runtime::{InProcNet, LinkShape, Role};
 use dray_trace::render::Isa;
 use dray_trace::tile::MissMode;
@@ -36,7 +36,7 @@ fn options(cache_bytes: u64, mode: MissMode, stores: usize) -> ClientOptions {
         tiles_ahead: TILES_AHEAD,
         max_tiles_ahead: TILES_AHEAD,
         preload: false,
-        compress_pixels: true,
+        pixel_compression: Compression::Lz4,
         isa: Isa::detect(),
         stores: routes(stores),
         scheduler: names::scheduler(),

@@ -28,7 +28,7 @@ mod pixels;
 pub use bounded::{Blob, BoundedVec, PackedF32, PackedU32};
 pub use messages::*;
 pub use name::{Name, NameError, MAX_NAME_LEN};
-pub use pixels::{PixelError, Pixels, TilePixels};
+pub use pixels::{Compression, PixelError, Pixels, TilePixels};
 
 use serde::{Deserialize, Serialize};
 

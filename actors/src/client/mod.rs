@@ -31,8 +31,8 @@ use ahead::{Ahead, RoundTrips};
 use batch::TileBatch;
 use cache::VoxelCache;
 use dray_protocol::{
-    Address, AssignTile, BoundedVec, FetchManifest, Message, PackedF32, PackedU32, RequestWork,
-    TileDone, TilePixels, TileStats, MAX_REPORT_HITS,
+    Address, AssignTile, BoundedVec, Compression, FetchManifest, Message, PackedF32, PackedU32,
+    RequestWork, TileDone, TilePixels, TileStats, MAX_REPORT_HITS,
 };
 use dray_runtime::{ActorRef, Delivery, Mailbox};
 use dray_scene::db::manifest::Manifest;
@@ -76,8 +76,9 @@ pub struct ClientOptions {
     pub max_tiles_ahead: usize,
     /// Fetch every voxel that fits the cache before asking for tiles.
     pub preload: bool,
-    /// Compress finished tiles' pixels where that makes them smaller.
-    pub compress_pixels: bool,
+    /// How finished tiles' pixels are compressed (where that makes them
+    /// smaller).
+    pub pixel_compression: Compression,
     /// The tracing kernel.
     pub isa: dray_trace::render::Isa,
     /// Where voxels come from.
@@ -415,7 +416,7 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
                     let frame = r.job.frame;
                     batch.finished(
                         frame,
-                        finish_tile(r, prefetched, opts.compress_pixels, &mut summary),
+                        finish_tile(r, prefetched, opts.pixel_compression, &mut summary),
                     );
                 }
                 if resized {
@@ -499,7 +500,7 @@ fn job(a: AssignTile, diagonal: f32, isa: dray_trace::render::Isa) -> TileJob {
 fn finish_tile(
     r: TileResult,
     prefetched: u64,
-    compress: bool,
+    compression: Compression,
     summary: &mut ClientSummary,
 ) -> Option<Message> {
     let TileResult {
@@ -544,11 +545,7 @@ fn finish_tile(
             let done = TileDone {
                 frame: job.frame,
                 tile: job.tile,
-                pixels: if compress {
-                    TilePixels::encode_compressed(&img.rgba)
-                } else {
-                    TilePixels::encode(&img.rgba)
-                },
+                pixels: TilePixels::encode_with(&img.rgba, compression),
                 depth: job.want_depth.then_some(PackedF32(img.depth)),
                 prim_ids: job.want_prim_ids.then_some(PackedU32(img.primid)),
                 stats,

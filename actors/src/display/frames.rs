@@ -177,6 +177,8 @@ pub(crate) struct Frames {
     /// Images of frames shown, to assemble the next ones in: a fresh one
     /// every frame is a megabyte of new pages to fault in and clear.
     spare: Vec<Vec<[u8; 4]>>,
+    /// Where compressed tiles are decompressed, kept from tile to tile.
+    unpacked: Vec<u8>,
 }
 
 impl Frames {
@@ -187,6 +189,7 @@ impl Frames {
             pending: BTreeMap::new(),
             next_out: 0,
             spare: Vec::new(),
+            unpacked: Vec::new(),
         }
     }
 
@@ -243,7 +246,7 @@ impl Frames {
         let n = r.area();
         let pixels = t
             .pixels
-            .decode(n)
+            .decode_into(n, &mut self.unpacked)
             .map_err(|e| TileRejected::BadSize(format!("a {}x{} tile: {e}", r.w, r.h)))?;
         if t.depth.as_ref().is_some_and(|d| d.0.len() != n)
             || t.prim_ids.as_ref().is_some_and(|p| p.0.len() != n)
