@@ -1,6 +1,6 @@
 //! The example parses; each kind of mistake is named by its key.
 
-use dray_config::{Config, ConfigError, MissMode};
+use dray_config::{Compression, Config, ConfigError, MissMode};
 use std::path::Path;
 
 fn example_text() -> String {
@@ -14,6 +14,21 @@ fn the_local_example_loads() {
     let cfg = Config::load(&path).unwrap();
     assert_eq!(cfg.clients.count, 4);
     assert_eq!(cfg.clients.miss_mode, MissMode::Suspend);
+    assert_eq!(cfg.clients.pixel_compression, Compression::Lz4);
+    let zstd = example_text().replacen(
+        "pixel_compression = \"lz4\"",
+        "pixel_compression = \"zstd\"",
+        1,
+    );
+    assert_eq!(
+        Config::parse(&zstd).unwrap().clients.pixel_compression,
+        Compression::Zstd
+    );
+    let unset = example_text().replacen("pixel_compression = \"lz4\"", "", 1);
+    assert_eq!(
+        Config::parse(&unset).unwrap().clients.pixel_compression,
+        Compression::Lz4
+    );
     assert_eq!(cfg.store_addrs().unwrap().len(), 2);
     assert!(cfg.scheduler_addr().unwrap().ip().is_loopback());
     assert!(cfg.certs.dir.starts_with(path.parent().unwrap()));
@@ -171,6 +186,14 @@ fn unknown_fields_and_wrong_types_are_refused_by_toml() {
         broken("miss_mode = \"suspend\"", "miss_mode = \"hope\""),
         "",
         "unknown variant `hope`",
+    );
+    assert_names(
+        broken(
+            "pixel_compression = \"lz4\"",
+            "pixel_compression = \"gzip\"",
+        ),
+        "",
+        "unknown variant `gzip`",
     );
     let e = broken("width = 1280", "width = \"wide\"");
     assert!(matches!(e, ConfigError::Parse { .. }));
