@@ -401,8 +401,9 @@ pub struct ClientsConfig {
     /// How finished tiles' pixels are compressed (where that makes them
     /// smaller) on their way to the display: `"lz4"` (the default: the
     /// least CPU, about 7 times fewer bytes on the plant), `"zstd"` (its
-    /// fastest level: a fifth fewer bytes than LZ4 for twice the CPU, for
-    /// slow links) or `"none"`.
+    /// fastest level: a fifth fewer bytes than LZ4 for about 1.4 times its
+    /// CPU, for slow links) or `"none"` (more CPU than LZ4 even over
+    /// loopback: more packets).
     #[serde(default)]
     pub pixel_compression: Compression,
     /// Host the clients bind (they dial out; the port is picked).
