@@ -78,6 +78,8 @@ struct Behaviour {
     plane_hits: bool,
     /// How many times `render` a tile of this frame takes.
     slowdown: fn(u64) -> u32,
+    /// Says its cache holds the whole model.
+    holds_model: bool,
 }
 
 impl Behaviour {
@@ -90,6 +92,7 @@ impl Behaviour {
             misses: 1,
             plane_hits: true,
             slowdown: |_| 1,
+            holds_model: false,
         }
     }
 }
@@ -147,7 +150,10 @@ fn spawn_client(net: &InProcNet, i: usize, b: Behaviour, log: Log) -> (Bus, Join
                     let _ = me
                         .send(
                             &names::scheduler(),
-                            Message::RequestWork(RequestWork { slots: 1 }),
+                            Message::RequestWork(RequestWork {
+                                slots: 1,
+                                holds_model: b.holds_model,
+                            }),
                         )
                         .await;
                 }
@@ -156,7 +162,10 @@ fn spawn_client(net: &InProcNet, i: usize, b: Behaviour, log: Log) -> (Bus, Join
         let _ = me
             .send(
                 &names::scheduler(),
-                Message::RequestWork(RequestWork { slots: b.slots }),
+                Message::RequestWork(RequestWork {
+                    slots: b.slots,
+                    holds_model: b.holds_model,
+                }),
             )
             .await;
         while let Some((_, msg)) = mb.recv_message().await {
@@ -1287,25 +1296,25 @@ async fn walk_through_a_cut(clients: &[Behaviour]) -> (Vec<Vec<usize>>, usize) {
 }
 
 #[tokio::test(start_paused = true)]
-async fn scheduler_keeps_each_clients_side_across_a_cut_and_its_blocks_only_in_warm_caches() {
+async fn scheduler_treats_a_camera_cut_as_cold_and_keeps_each_clients_side() {
     let n = TileGrid::new(640, 480, 32).count();
-    // Warm clients: the cut frame's tiles still go out in blocks, as the
-    // caches held everything the last frame showed.
     let (sizes, kept) = walk_through_a_cut(&[warm(), warm()]).await;
     assert!(sizes[3].contains(&16), "before the cut: {:?}", sizes[3]);
-    assert!(sizes[4].contains(&16), "the cut: {:?}", sizes[4]);
+    // The last frame's tiles rendered without a miss, but they showed
+    // something else: the cut frame's tiles go one by one, as cold ones.
+    assert!(sizes[4].iter().all(|&s| s == 1), "the cut: {:?}", sizes[4]);
+    // It continues from the cut frame: blocks again.
     assert!(sizes[5].contains(&16), "after the cut: {:?}", sizes[5]);
     // Each client keeps its part of the screen across the cut.
     assert!(kept * 5 > n * 4, "{kept} of {n} tiles kept their client");
-    // One client misses voxels in every tile: the caches are short, and
-    // the cut frame's tiles go one by one, as cold ones.
-    let (sizes, kept) = walk_through_a_cut(&[warm(), Behaviour::normal()]).await;
-    assert!(
-        sizes[3].contains(&16),
-        "the warm client's blocks: {:?}",
-        sizes[3]
-    );
-    assert!(sizes[4].iter().all(|&s| s == 1), "the cut: {:?}", sizes[4]);
+    // Clients whose caches hold the whole model miss nothing anywhere:
+    // blocks across the cut too, and the same parts of the screen.
+    let whole = Behaviour {
+        holds_model: true,
+        ..warm()
+    };
+    let (sizes, kept) = walk_through_a_cut(&[whole.clone(), whole]).await;
+    assert!(sizes[4].contains(&16), "the cut: {:?}", sizes[4]);
     assert!(kept * 5 > n * 4, "{kept} of {n} tiles kept their client");
 }
 

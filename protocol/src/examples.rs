@@ -24,7 +24,10 @@ pub fn one_of_each(voxel_bytes: usize) -> Vec<Message> {
     };
     let n = tile.area();
     vec![
-        Message::RequestWork(RequestWork { slots: 4 }),
+        Message::RequestWork(RequestWork {
+            slots: 4,
+            holds_model: true,
+        }),
         Message::AssignTile(AssignTile {
             frame: 7,
             tile,

@@ -121,6 +121,11 @@ pub struct RenderSettings {
 pub struct RequestWork {
     /// How many more tiles the client can take now.
     pub slots: u16,
+    /// Whether the client's cache holds every voxel of the model (a
+    /// preloaded client whose budget fits it): it renders any tile
+    /// without a miss, so the scheduler may send it blocks of tiles that
+    /// nothing says are warm.
+    pub holds_model: bool,
 }
 
 /// The scheduler gives a client one tile of a frame to render.

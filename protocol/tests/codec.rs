@@ -251,7 +251,10 @@ fn maximal_messages_fit_their_limits() {
         stall_us: u64::MAX,
     };
     let msgs = vec![
-        Message::RequestWork(RequestWork { slots: u16::MAX }),
+        Message::RequestWork(RequestWork {
+            slots: u16::MAX,
+            holds_model: false,
+        }),
         Message::AssignTile(AssignTile {
             frame: u64::MAX,
             tile: TileRect {

@@ -151,9 +151,15 @@ async fn fan_in(p: &Pair, per_sender: usize, tag: &str) -> f64 {
         let to = to.clone();
         senders.push(tokio::spawn(async move {
             for _ in 0..per_sender {
-                mb.send(&to, Message::RequestWork(RequestWork { slots: 1 }))
-                    .await
-                    .expect("send");
+                mb.send(
+                    &to,
+                    Message::RequestWork(RequestWork {
+                        slots: 1,
+                        holds_model: false,
+                    }),
+                )
+                .await
+                .expect("send");
             }
         }));
     }

@@ -13,7 +13,7 @@
 //! released, and [`VoxelCache::peak_bytes`] records how far.
 
 use dray_trace::scene::PreparedVoxel;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 
 struct Slot {
@@ -28,6 +28,8 @@ pub struct VoxelCache {
     budget: u64,
     clock: AtomicU64,
     resident: AtomicU64,
+    /// Voxels resident (of `slots.len()`).
+    count: AtomicUsize,
     peak: AtomicU64,
     evicted: AtomicU64,
     /// Serializes inserts and evictions.
@@ -55,6 +57,7 @@ impl VoxelCache {
             // Above every initial stamp, so a first use always stamps.
             clock: AtomicU64::new(1),
             resident: AtomicU64::new(0),
+            count: AtomicUsize::new(0),
             peak: AtomicU64::new(0),
             evicted: AtomicU64::new(0),
             evict: Mutex::new(()),
@@ -108,6 +111,7 @@ impl VoxelCache {
             }
             *s = Some(voxel.clone());
         }
+        self.count.fetch_add(1, Ordering::Relaxed);
         self.touch(slot);
         let now = self
             .resident
@@ -151,6 +155,7 @@ impl VoxelCache {
                     let bytes = v.bytes as u64;
                     *s = None;
                     self.resident.fetch_sub(bytes, Ordering::Relaxed);
+                    self.count.fetch_sub(1, Ordering::Relaxed);
                     freed += 1;
                 }
             }
@@ -167,6 +172,11 @@ impl VoxelCache {
     /// Bytes of the voxels held now.
     pub fn resident_bytes(&self) -> u64 {
         self.resident.load(Ordering::Relaxed)
+    }
+
+    /// Whether every voxel is resident: nothing can miss.
+    pub fn holds_all(&self) -> bool {
+        self.count.load(Ordering::Relaxed) == self.slots.len()
     }
 
     /// The most bytes ever resident at once.
@@ -264,6 +274,31 @@ mod tests {
         assert_eq!(c.resident_ids(), vec![2, 3, 4]);
         assert_eq!(c.evicted(), 2);
         assert!(c.get(1).is_none());
+    }
+
+    #[test]
+    fn it_holds_all_only_while_every_voxel_is_resident() {
+        let c = VoxelCache::new(3, 1000);
+        c.insert(voxel(0, 100));
+        c.insert(voxel(1, 100));
+        assert!(!c.holds_all());
+        // The same voxel again is no new one.
+        c.insert(voxel(1, 100));
+        assert!(!c.holds_all());
+        c.insert(voxel(2, 100));
+        assert!(c.holds_all());
+        // A budget for two: the third insert frees one.
+        let c = VoxelCache::new(3, 250);
+        for id in 0..3 {
+            c.insert(voxel(id, 100));
+        }
+        assert!(!c.holds_all());
+        assert_eq!(c.resident_ids(), vec![1, 2]);
+        // Held, all three stay (over budget): the count followed.
+        let held: Vec<_> = [0, 1, 2].map(|id| c.insert(voxel(id, 100)).0).into();
+        assert_eq!(c.resident_ids().len(), 3, "{:?}", c.resident_ids());
+        assert!(c.holds_all());
+        drop(held);
     }
 
     #[test]

@@ -225,8 +225,13 @@ async fn wait_for_scheduler(mb: &mut Mailbox, opts: &ClientOptions) -> Start<()>
     }
 }
 
-fn slots(n: usize) -> u16 {
-    n.min(u16::MAX as usize) as u16
+/// A request for `n` more tiles, saying whether `cache` holds the whole
+/// model (so that the scheduler may send blocks of any tiles).
+fn request_work(n: usize, cache: &VoxelCache) -> Message {
+    Message::RequestWork(RequestWork {
+        slots: n.min(u16::MAX as usize) as u16,
+        holds_model: cache.holds_all(),
+    })
 }
 
 /// Runs a client until it gets [`Message::Shutdown`] or its mailbox
@@ -343,10 +348,7 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
             if scheduler_up {
                 owed = capacity(&ahead);
                 round_trips.asked(Instant::now().into_std(), owed);
-                let _ = results.send((
-                    opts.scheduler.clone(),
-                    Message::RequestWork(RequestWork { slots: slots(owed) }),
-                ));
+                let _ = results.send((opts.scheduler.clone(), request_work(owed, &cache)));
             }
         }
         tokio::select! {
@@ -388,7 +390,7 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
                             info!(%actor, free, "scheduler is back: asking for work again");
                             let _ = results.send((
                                 opts.scheduler.clone(),
-                                Message::RequestWork(RequestWork { slots: slots(free) }),
+                                request_work(free, &cache),
                             ));
                         }
                     }
@@ -443,7 +445,7 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
                     round_trips.asked(Instant::now().into_std(), ask);
                     let _ = pixels.send((
                         opts.scheduler.clone(),
-                        Message::RequestWork(RequestWork { slots: slots(ask) }),
+                        request_work(ask, &cache),
                     ));
                 }
             }

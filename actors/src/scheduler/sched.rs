@@ -9,8 +9,8 @@ use crate::settings::kernel_camera;
 use crate::ActorError;
 use dray_protocol::{
     Address, AssignTile, Blob, BoundedVec, Camera, ClientFrameStats, FrameAssigned, FrameDone,
-    FrameStart, FrameStats, Message, Name, PackedF32, PackedU32, RenderSettings, TileOwners,
-    TileReport, MAX_STATS_CLIENTS, MAX_TILE_HITS,
+    FrameStart, FrameStats, Message, Name, PackedF32, PackedU32, RenderSettings, RequestWork,
+    TileOwners, TileReport, MAX_STATS_CLIENTS, MAX_TILE_HITS,
 };
 use dray_runtime::{Delivery, Mailbox};
 use dray_scene::rng::Rng;
@@ -156,8 +156,8 @@ struct Frame {
     /// reported (for a block: any of its tiles).
     missed: Vec<bool>,
     /// Per tile, whether the previous frame rendered it without a miss
-    /// (on the same grid; after a cut, whether that frame missed nowhere):
-    /// only such tiles go out in blocks.
+    /// (on the same grid): only such tiles go out in blocks, except to a
+    /// client that holds the whole model.
     warm: Vec<bool>,
     /// Affinity: per tile, the client whose cache should hold what it
     /// shows (see [`Frame::reprojection`]).
@@ -324,19 +324,9 @@ impl Frame {
         // 0.7.
         let cut = prev.filter(|p| !self.continues_from(p));
         let guide = prev.filter(|_| cut.is_none());
-        // After a cut the new tiles are cold, unless the last frame missed
-        // no voxel anywhere: the caches then held all it showed, and most
-        // likely hold the new view too. In a preloaded cluster on the
-        // bench's walk one sort of a frame's tiles in eight follows a cut, and
-        // its 300 tiles going out one by one had made 88 assignments a
-        // frame, against 65 with blocks. A frame that missed somewhere
-        // says the caches are short, and its cut's tiles go one by one.
-        self.warm = match (guide, cut) {
-            (Some(p), _) if p.grid == self.grid => p.missed.iter().map(|&m| !m).collect(),
-            (None, Some(p)) if p.grid == self.grid && !p.missed.contains(&true) => {
-                vec![true; self.tiles.len()]
-            }
-            _ => vec![false; self.tiles.len()],
+        self.warm = match guide.filter(|p| p.grid == self.grid) {
+            Some(p) => p.missed.iter().map(|&m| !m).collect(),
+            None => vec![false; self.tiles.len()],
         };
         (self.affine, self.votes) = match guide {
             Some(p) => self.reprojection(p),
@@ -574,9 +564,10 @@ impl Frame {
     /// message each way, for what would otherwise be up to 16. The block
     /// shrinks as the frame's fresh tiles run out, so that the last tiles
     /// still balance the clients' loads one by one. Blocks are made of
-    /// tiles that the previous frame rendered without a miss (after a cut,
-    /// of any tiles if that frame missed nowhere; see
-    /// [`Frame::sort_fresh`]): there a
+    /// tiles that the previous frame rendered without a miss, unless the
+    /// camera cut since (see [`Frame::sort_fresh`]), or of any tiles for a
+    /// client that holds the whole model (`holds_model`), which misses
+    /// nothing: there a
     /// tile is quick and its messages weigh; where voxels were missing,
     /// tiles are slow and uneven, and they go one by one so that the
     /// clients share them evenly (a cold walk took in whole frames as
@@ -585,9 +576,16 @@ impl Frame {
     /// or of nobody's comes with a block: a tile taken from another
     /// client's queue comes alone, as that client's cache holds what it
     /// shows. Returns the tiles, row by row, taken out of their queues.
-    fn block(&mut self, i: usize, c: &Name, clients: usize, max_px: u32) -> Vec<usize> {
+    fn block(
+        &mut self,
+        i: usize,
+        c: &Name,
+        clients: usize,
+        max_px: u32,
+        holds_model: bool,
+    ) -> Vec<usize> {
         if self.tiles[i].state != State::Fresh
-            || !self.warm[i]
+            || !(holds_model || self.warm[i])
             || self.affine[i].as_ref().is_some_and(|o| o != c)
         {
             return vec![i];
@@ -605,7 +603,7 @@ impl Frame {
                 if block.iter().all(|&j| {
                     j == i
                         || (self.tiles[j].state == State::Fresh
-                            && self.warm[j]
+                            && (holds_model || self.warm[j])
                             && self.affine[j] == *queue)
                 }) {
                     // Out of the queue they share with `i`: `c`'s group, or
@@ -690,6 +688,8 @@ impl Frame {
 struct ClientState {
     addr: Address,
     credits: u32,
+    /// Its cache holds every voxel (as its last request said).
+    holds_model: bool,
 }
 
 /// Something to send once the state is updated.
@@ -735,17 +735,19 @@ impl Scheduler {
             .map(|(_, c)| c)
     }
 
-    fn request_work(&mut self, from: Address, slots: u16) {
+    fn request_work(&mut self, from: Address, r: RequestWork) {
         match self.client(&from.node) {
             Some(c) => {
-                c.credits = (c.credits + u32::from(slots)).min(MAX_CREDITS);
+                c.credits = (c.credits + u32::from(r.slots)).min(MAX_CREDITS);
+                c.holds_model = r.holds_model;
                 c.addr = from;
             }
             None => self.clients.push((
                 from.node.clone(),
                 ClientState {
                     addr: from,
-                    credits: u32::from(slots).min(MAX_CREDITS),
+                    credits: u32::from(r.slots).min(MAX_CREDITS),
+                    holds_model: r.holds_model,
                 },
             )),
         }
@@ -852,7 +854,7 @@ impl Scheduler {
                 state.credits -= 1;
                 progress = true;
                 let tiles = if self.opts.affinity {
-                    frame.block(i, node, n, self.opts.max_block_px)
+                    frame.block(i, node, n, self.opts.max_block_px, state.holds_model)
                 } else {
                     vec![i]
                 };
@@ -1139,7 +1141,7 @@ pub async fn run_scheduler(
                     return Ok(s.summary);
                 }
                 Some(Delivery::Message { from, msg }) => match msg {
-                    Message::RequestWork(r) => s.request_work(from, r.slots),
+                    Message::RequestWork(r) => s.request_work(from, r),
                     Message::FrameStart(f) => s.frame_start(f, &mut out),
                     // From the display, which has the pixels, or from the
                     // client itself; nobody else speaks for a client.
@@ -1324,7 +1326,7 @@ mod tests {
     }
 
     #[test]
-    fn after_a_cut_each_tile_stays_with_its_client_in_index_order() {
+    fn after_a_cut_each_tile_stays_with_its_client_in_index_order_and_cold() {
         let ahead = Camera {
             eye: [0.0, 0.0, 5.0],
             look: [0.0, 0.0, 0.0],
@@ -1347,25 +1349,15 @@ mod tests {
             look: [10.0, 0.0, 5.0],
             ..ahead
         };
-        let mut prev = previous(&f, aside);
+        let prev = previous(&f, aside);
         f.sort_fresh(Some(&prev), &opts);
         assert_eq!(f.affine, prev.owners, "each tile with its last client");
+        assert!(f.warm.iter().all(|&w| !w), "no blocks");
         for q in &f.groups {
             let lowest = q.iter().copied().min();
             assert_eq!(q.last().copied(), lowest, "index order: {q:?}");
         }
         assert_eq!(f.groups.iter().map(Vec::len).sum::<usize>(), f.tiles.len());
-        // That frame missed no voxel anywhere: the caches hold what they
-        // need, and the new tiles may go out in blocks.
-        assert!(
-            f.warm.iter().all(|&w| w),
-            "blocks after a cut in warm caches"
-        );
-        // One tile missed: every tile of the cut is cold, and goes alone.
-        prev.missed[3] = true;
-        f.sort_fresh(Some(&prev), &opts);
-        assert_eq!(f.affine, prev.owners);
-        assert!(f.warm.iter().all(|&w| !w), "no blocks");
     }
 
     #[test]
