@@ -80,6 +80,7 @@ fn owners() -> TileOwners {
         hit_counts: Blob(vec![0; grid.count()]),
         hits: PackedF32(Vec::new()),
         misses: 1,
+        holds_model: BoundedVec::default(),
     }
 }
 
@@ -305,14 +306,38 @@ async fn scheduler_prefetcher_hints_the_voxels_of_each_clients_tiles() {
         Some(12),
         "a miss: planned again"
     );
+    assert_eq!(hint(&mut clients[1]).await.map(|h| h.frame), Some(12));
+
+    // Client 1's cache holds the whole model: hints for client 0 only,
+    // then, once both hold it, no plan at all.
+    for (frame, whole) in [
+        (11, vec![names::client_node(1)]),
+        (12, vec![names::client_node(0), names::client_node(1)]),
+    ] {
+        let o = Message::TileOwners(TileOwners {
+            frame,
+            misses: 3,
+            holds_model: BoundedVec::new(whole).unwrap(),
+            ..owners()
+        });
+        feeder.send(&names::prefetcher(), o).await.unwrap();
+        let u = Message::CameraUpdate(CameraUpdate {
+            seq: frame + 1,
+            camera: cam(frame as f32 * 0.5),
+        });
+        feeder.send(&names::prefetcher(), u).await.unwrap();
+        let to_0 = hint(&mut clients[0]).await.map(|h| h.frame);
+        assert_eq!(to_0, (frame == 11).then_some(13), "frame {frame}");
+        assert_eq!(hint(&mut clients[1]).await, None, "frame {frame}");
+    }
 
     let bye = Message::Shutdown(Shutdown {
         reason: "test over".into(),
     });
     feeder.send(&names::prefetcher(), bye).await.unwrap();
     let summary = task.await.unwrap().unwrap();
-    assert_eq!(summary.hints, 4 + 2 * 2 + 2);
-    assert_eq!(summary.frames_skipped, 6);
+    assert_eq!(summary.hints, 4 + 2 * 2 + 2 + 1);
+    assert_eq!(summary.frames_skipped, 6 + 1);
     assert!(summary.voxels_hinted >= 4);
     drop(store);
     store_task.abort();

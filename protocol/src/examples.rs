@@ -165,6 +165,10 @@ pub fn one_of_each(voxel_bytes: usize) -> Vec<Message> {
             hit_counts: Blob(vec![2, 0, 0, 1]),
             hits: PackedF32(vec![1.0, 2.0, 3.0, -1.0, 0.5, 8.0, 4.0, 4.0, -4.0]),
             misses: 17,
+            holds_model: BoundedVec::new(vec![
+                Name::new("client-1").expect("constant name is valid")
+            ])
+            .expect("one entry is under the bound"),
         }),
     ]
 }

@@ -383,6 +383,10 @@ pub struct TileOwners {
     /// (the sum of the tiles' `misses`): the prefetcher plans less while
     /// frames have none.
     pub misses: u64,
+    /// The clients whose caches hold every voxel of the model, as their
+    /// last [`RequestWork`] said: hints to them would fetch nothing, and
+    /// the prefetcher plans none for them.
+    pub holds_model: BoundedVec<Name, MAX_STATS_CLIENTS>,
 }
 
 /// Every actor message. The variant order is the wire tag: append only.
@@ -524,6 +528,9 @@ impl MessageKind {
                     + 2 * 5
                     // misses: a u64 varint
                     + 10
+                    // holds_model: names, as `clients`
+                    + 4
+                    + MAX_STATS_CLIENTS * (crate::MAX_NAME_LEN + 1)
             }
             MessageKind::VoxelError | MessageKind::Shutdown => ENVELOPE_OVERHEAD + text,
             MessageKind::TileDone => {

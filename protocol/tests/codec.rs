@@ -363,6 +363,7 @@ fn maximal_messages_fit_their_limits() {
             hit_counts: Blob(vec![MAX_TILE_HITS as u8; MAX_FRAME_TILES]),
             hits: PackedF32(vec![f32::MAX; MAX_FRAME_TILES * MAX_TILE_HITS * 3]),
             misses: u64::MAX,
+            holds_model: BoundedVec::new(vec![long('h'); MAX_STATS_CLIENTS]).unwrap(),
         }),
     ];
     for msg in msgs {

@@ -185,7 +185,8 @@ fn recipients(
 /// image streams from a point in view (`owners_camera` is the `owners`
 /// frame's camera, if known), else the one whose content of the `owners`
 /// frame lands there most, else the tile's owner in that frame (tiles of
-/// none are skipped).
+/// none are skipped, and so are those of a client that holds the whole
+/// model).
 pub fn plan_hints(
     top: &TopLevel,
     (owners, owners_camera): (&TileOwners, Option<&Camera>),
@@ -199,6 +200,11 @@ pub fn plan_hints(
     let grid = super::tiles::TileGrid::new(owners.width, owners.height, owners.tile_size);
     let recipients = recipients(owners, owners_camera, camera, &grid);
     let clients = owners.clients.as_slice();
+    // No rays for the tiles of a client that holds the whole model.
+    let whole: Vec<bool> = clients
+        .iter()
+        .map(|c| owners.holds_model.as_slice().contains(c))
+        .collect();
     // Per client: voxel → (nearest rank along a ray, how many rays).
     let mut seen: Vec<HashMap<u32, (u32, u32)>> = vec![HashMap::new(); clients.len()];
     let (mut stack, mut hits) = (Vec::new(), Vec::new());
@@ -215,6 +221,9 @@ pub fn plan_hints(
             let Some(&c) = recipients.get(tile) else {
                 continue;
             };
+            if whole.get(c as usize).copied().unwrap_or(false) {
+                continue;
+            }
             let Some(per) = seen.get_mut(c as usize) else {
                 continue;
             };
@@ -275,6 +284,12 @@ impl Prefetcher {
         if !plans_frame(self.quiet, next) {
             self.summary.frames_skipped += 1;
             debug!(frame = next, quiet = self.quiet, "caches warm: no plan");
+            return;
+        }
+        let whole = owners.holds_model.as_slice();
+        if owners.clients.as_slice().iter().all(|c| whole.contains(c)) {
+            self.summary.frames_skipped += 1;
+            debug!(frame = next, "every client holds the model: no plan");
             return;
         }
         let prev = (self.cams.len() == 2).then(|| (self.cams[0].0, &self.cams[0].1));
@@ -474,6 +489,7 @@ mod tests {
             hit_counts: Blob(hit_counts.to_vec()),
             hits: PackedF32(hits.iter().flat_map(|p| p.to_array()).collect()),
             misses: 0,
+            holds_model: BoundedVec::default(),
         }
     }
 

@@ -680,6 +680,8 @@ impl Frame {
                     .collect(),
             ),
             misses: stats.misses,
+            // The scheduler's to fill in: it knows the clients.
+            holds_model: BoundedVec::default(),
         };
         (stats, owners)
     }
@@ -1012,7 +1014,14 @@ impl Scheduler {
         if !frame.announced {
             out.push(Out::Assigned(number));
         }
-        let (stats, owners) = frame.summary_messages();
+        let (stats, mut owners) = frame.summary_messages();
+        let whole: Vec<Name> = self
+            .clients
+            .iter()
+            .filter(|(_, c)| c.holds_model)
+            .map(|(n, _)| n.clone())
+            .collect();
+        owners.holds_model = BoundedVec::new(whole).unwrap_or_default();
         // Affinity at work: how many tiles their affinity client rendered.
         let kept = frame
             .affine
