@@ -65,18 +65,25 @@ impl TileGrid {
     }
 
     /// The tiles of the aligned block of `side` × `side` tiles that holds
-    /// tile `i`, clipped to the grid, row by row (`i` among them).
+    /// tile `i`, clipped to the grid, row by row (`i` among them). Blocks
+    /// are aligned on the grid's middle column and middle row, not on its
+    /// corner, so that none straddles the lines through the image's centre
+    /// where the scheduler's sectors meet (the left and right halves with
+    /// two clients). Aligned on the corner, the blocks of 4 × 4 down the
+    /// middle of a 640-pixel image went out as blocks of 2 × 2.
     pub fn block_of(&self, i: usize, side: u32) -> Vec<usize> {
-        let side = side.max(1);
-        let (cx, cy) = (
-            (i % self.cols as usize) as u32,
-            (i / self.cols as usize) as u32,
-        );
-        let (bx, by) = (cx / side * side, cy / side * side);
+        let side = i64::from(side.max(1));
+        let cols = self.cols as usize;
+        // First tile of the block along an axis of `n` tiles.
+        let start = |c: usize, n: u32| {
+            let offset = i64::from(n / 2) % side;
+            offset + (c as i64 - offset).div_euclid(side) * side
+        };
+        let (bx, by) = (start(i % cols, self.cols), start(i / cols, self.rows));
         let mut tiles = Vec::new();
-        for y in by..(by + side).min(self.rows) {
-            for x in bx..(bx + side).min(self.cols) {
-                tiles.push(y as usize * self.cols as usize + x as usize);
+        for y in by.max(0)..(by + side).min(i64::from(self.rows)) {
+            for x in bx.max(0)..(bx + side).min(i64::from(self.cols)) {
+                tiles.push(y as usize * cols + x as usize);
             }
         }
         tiles
@@ -234,12 +241,30 @@ mod tests {
     #[test]
     fn blocks_are_aligned_clipped_and_their_rects_map_back_to_their_tiles() {
         let g = TileGrid::new(100, 70, 32);
-        // 4 × 3 tiles; blocks of 2 × 2, the last row and column clipped.
-        assert_eq!(g.block_of(0, 2), vec![0, 1, 4, 5]);
-        assert_eq!(g.block_of(5, 2), vec![0, 1, 4, 5]);
-        assert_eq!(g.block_of(11, 2), vec![10, 11]);
-        assert_eq!(g.block_of(7, 4), (0..12).collect::<Vec<_>>());
+        // 4 × 3 tiles; blocks of 2 × 2 with edges on the middle column (2)
+        // and row (1): the first row alone.
+        assert_eq!(g.block_of(0, 2), vec![0, 1]);
+        assert_eq!(g.block_of(5, 2), vec![4, 5, 8, 9]);
+        assert_eq!(g.block_of(11, 2), vec![6, 7, 10, 11]);
+        assert_eq!(g.block_of(7, 4), vec![6, 7, 10, 11]);
+        assert_eq!(g.block_of(1, 4), vec![0, 1]);
         assert_eq!(g.block_of(6, 1), vec![6]);
+        // No block crosses the middle column of a 640 × 480 image.
+        let wide = TileGrid::new(640, 480, 32);
+        for side in [2, 4, 8] {
+            for i in 0..wide.count() {
+                let cols: Vec<u32> = wide
+                    .block_of(i, side)
+                    .iter()
+                    .map(|&j| j as u32 % wide.cols)
+                    .collect();
+                let left = |c: &u32| *c < wide.cols / 2;
+                assert!(
+                    cols.iter().all(left) || !cols.iter().any(left),
+                    "side {side}, tile {i}: {cols:?}"
+                );
+            }
+        }
         for side in [1, 2, 3, 4, 8] {
             for i in 0..g.count() {
                 let b = g.block_of(i, side);
