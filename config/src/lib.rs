@@ -251,7 +251,8 @@ pub struct SchedulerConfig {
     /// its tiles as one assignment, at most this many pixels a side (its
     /// pixels come back in one message; the blocks shrink to single tiles
     /// as the frame's tiles run out, and only tiles the previous frame
-    /// rendered without a miss go in blocks). A value under twice the
+    /// rendered without a miss go in blocks, unless the client's cache
+    /// holds the whole model). A value under twice the
     /// tile size hands out single tiles only.
     #[serde(default = "default_max_block_px")]
     pub max_block_px: u32,
