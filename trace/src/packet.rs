@@ -23,7 +23,7 @@
 // shape LLVM vectorizes.
 #![allow(clippy::needless_range_loop)]
 
-use crate::scene::{PreparedVoxel, TopLevel, TopNode, VoxelSource};
+use crate::scene::{PreparedVoxel, TopLevel, TopNode, VoxelSource, WideNode};
 use glam::Vec3;
 
 /// Relative widening of every culling interval: slab tests round, and a
@@ -341,12 +341,10 @@ impl<const N: usize> Packet<N> {
             // the nearest child is visited at once. (Prefetches never
             // fault: `wrapping_add` of any index is fine.)
             for c in 0..4 {
-                let (count, first) = (node.count[c], node.child[c] as usize);
-                if count == 0 {
-                    let n = vox.nodes.as_ptr().wrapping_add(first) as *const u8;
-                    prefetch(n);
-                    prefetch(n.wrapping_add(64));
-                } else if count != crate::scene::WideNode::EMPTY {
+                let (kind, first) = (node.kind(c), node.index(c) as usize);
+                if kind == 0 {
+                    prefetch(vox.nodes.as_ptr().wrapping_add(first) as *const u8);
+                } else if kind != WideNode::EMPTY {
                     // A leaf of 4 triangles spans 144 bytes: three cache
                     // lines, or four where it starts in a line's last 16
                     // bytes (the fourth prefetch: +2 % on the far 12.5 M
@@ -359,16 +357,26 @@ impl<const N: usize> Packet<N> {
                     prefetch(vox.ids.as_ptr().wrapping_add(first) as *const u8);
                 }
             }
+            // The children's boxes, out of the frame's fixed point.
+            let mut bmin = [[0.0f32; 4]; 3];
+            let mut bmax = [[0.0f32; 4]; 3];
+            for a in 0..3 {
+                for c in 0..4 {
+                    bmin[a][c] = vox.frame.plane(a, node.qmin[a][c]);
+                    bmax[a][c] = vox.frame.plane(a, node.qmax[a][c]);
+                }
+            }
             // Test every child box; for nearest-hit queries, order the hit
             // ones by where the first ray meets their centres.
             let mut hits = [(0.0f32, 0u32); 4];
             let mut n = 0;
             for c in 0..4 {
-                if node.count[c] == crate::scene::WideNode::EMPTY {
+                let kind = node.kind(c);
+                if kind == WideNode::EMPTY {
                     break;
                 }
-                let min = [node.min[0][c], node.min[1][c], node.min[2][c]];
-                let max = [node.max[0][c], node.max[1][c], node.max[2][c]];
+                let min = [bmin[0][c], bmin[1][c], bmin[2][c]];
+                let max = [bmax[0][c], bmax[1][c], bmax[2][c]];
                 let (t0, t1) = self.slab_within(min, max, seg.0, seg.1);
                 let mut any = false;
                 for i in 0..N {
@@ -392,17 +400,17 @@ impl<const N: usize> Packet<N> {
                         + (min[1] + max[1]) * dir0[1]
                         + (min[2] + max[2]) * dir0[2]
                 };
-                let count = node.count[c];
-                let first = node.child[c];
-                if count == 0 {
+                let first = node.index(c);
+                if kind == 0 {
                     hits[n] = (key, first);
                     n += 1;
-                } else if count <= 0x7F && first <= 0x00FF_FFFF {
-                    hits[n] = (key, LEAF | (count << 24) | first);
+                } else if first <= 0x00FF_FFFF {
+                    hits[n] = (key, LEAF | (kind << 24) | first);
                     n += 1;
                 } else {
-                    // A leaf too long for one entry (never built; kept exact).
-                    for k in first..first + count {
+                    // A leaf past what an entry can name (voxels of over
+                    // 16 M triangles; never built, kept exact).
+                    for k in first..first + kind {
                         let c = &vox.corners[k as usize];
                         self.triangle(shear, c, vox.ids[k as usize], vox.id, k);
                     }

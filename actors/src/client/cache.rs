@@ -205,6 +205,7 @@ mod tests {
         Arc::new(PreparedVoxel {
             id,
             nodes: Vec::new(),
+            frame: dray_trace::scene::Frame::EMPTY,
             corners: Vec::new(),
             ids: Vec::new(),
             triangles: Vec::new(),

@@ -259,6 +259,13 @@ impl Voxel {
             expected += 1;
             let n = &nodes[i];
             if n.is_leaf() {
+                // The kernel's layout names a leaf's count in a few bits.
+                if n.count as usize > MAX_LEAF_TRIANGLES {
+                    return Err(VoxelError::BadTree(format!(
+                        "leaf {i} holds {} triangles, more than {MAX_LEAF_TRIANGLES}",
+                        n.count
+                    )));
+                }
                 if n.first as usize != next_triangle {
                     return Err(VoxelError::BadTree(format!(
                         "leaf {i} starts at triangle {}, expected {next_triangle}",
