@@ -640,6 +640,20 @@ fn forged_blobs_fail_validation() {
         "malformed BVH",
     );
     forged(|v| v.bvh.push(v.bvh[1]), "malformed BVH");
+    forged(
+        |v| {
+            // One leaf of every triangle: the kernel's nodes name at most
+            // MAX_LEAF_TRIANGLES.
+            let bounds = v.bvh[0].bounds;
+            let count = v.triangles.len() as u32;
+            v.bvh = vec![dray_scene::voxel::BvhNode {
+                bounds,
+                first: 0,
+                count,
+            }];
+        },
+        "more than 4",
+    );
     forged(|v| v.bvh.clear(), "malformed BVH");
     forged(|v| v.positions[2][1] = f32::NAN, "non-finite");
     forged(|v| v.positions[2][0] = f32::INFINITY, "non-finite");

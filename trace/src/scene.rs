@@ -540,3 +540,139 @@ impl<S: VoxelSource> VoxelSource for RecordingSource<'_, S> {
         Some(v)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use dray_scene::mesh::Triangle;
+    use proptest::prelude::*;
+
+    /// A float of any sign and magnitude within `±2^exp_max`.
+    fn arb_coord(exp_max: i32) -> impl Strategy<Value = f32> {
+        (any::<bool>(), -30..exp_max, 0.0f32..1.0).prop_map(|(neg, e, m)| {
+            let x = (1.0 + m) * 2f32.powi(e);
+            if neg {
+                -x
+            } else {
+                x
+            }
+        })
+    }
+
+    fn arb_box(exp_max: i32) -> impl Strategy<Value = Aabb> {
+        proptest::collection::vec(arb_coord(exp_max), 6).prop_map(|c| {
+            let mut b = Aabb::EMPTY;
+            b.grow(Vec3::new(c[0], c[1], c[2]));
+            b.grow(Vec3::new(c[3], c[4], c[5]));
+            b
+        })
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig {
+            cases: 2000,
+            failure_persistence: None,
+            ..ProptestConfig::default()
+        })]
+
+        /// Quanta round outwards and are the tightest that do: the plane of
+        /// a box's low quantum is at or below its minimum and the next one
+        /// above it, and the other way round for the maximum, for boxes of
+        /// any size and place, up to spans that overflow `f32`.
+        #[test]
+        fn quanta_hold_their_box_tightly(
+            frame_box in arb_box(127),
+            t in proptest::collection::vec(0.0f32..=1.0, 6),
+        ) {
+            let f = Frame::covering(&frame_box);
+            for a in 0..3 {
+                let (lo, hi) = (frame_box.min[a], frame_box.max[a]);
+                prop_assert_eq!(f.plane(a, 0), lo);
+                prop_assert!(f.plane(a, Frame::TOP) >= hi);
+                prop_assert!(f.scale[a].is_finite());
+                // A box inside the frame (a point of the span, as f32).
+                let at = |s: f32| (lo as f64 + (hi as f64 - lo as f64) * s as f64) as f32;
+                let (x0, x1) = (at(t[a].min(t[a + 3])), at(t[a].max(t[a + 3])));
+                let (x0, x1) = (x0.clamp(lo, hi), x1.clamp(lo, hi));
+                let q0 = f.floor(a, x0);
+                prop_assert!(f.plane(a, q0) <= x0);
+                prop_assert!(q0 == Frame::TOP || f.plane(a, q0 + 1) > x0);
+                let q1 = f.ceil(a, x1);
+                prop_assert!(f.plane(a, q1) >= x1);
+                prop_assert!(q1 == 0 || f.plane(a, q1 - 1) < x1);
+            }
+        }
+    }
+
+    /// Tiny seeded generator (no dependency for one test).
+    struct Lcg(u64);
+    impl Lcg {
+        fn f(&mut self) -> f32 {
+            self.0 = self
+                .0
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (self.0 >> 40) as f32 / (1u64 << 24) as f32
+        }
+    }
+
+    /// Every child box of the wide BVH, out of the frame's fixed point,
+    /// holds every triangle below it: small triangles far from the frame's
+    /// origin (coarse quanta against them) and long ones across it.
+    #[test]
+    fn dequantized_boxes_hold_their_triangles() {
+        let mut r = Lcg(7);
+        let mut tris = Vec::new();
+        for i in 0..3000u32 {
+            let base = Vec3::new(1000.0 + r.f() * 50.0, r.f() * 50.0, -2000.0 + r.f() * 50.0);
+            let size = if i % 100 == 0 { 200.0 } else { 0.01 };
+            let p = [0, 1, 2].map(|_| base + Vec3::new(r.f(), r.f(), r.f()) * size);
+            tris.push(Triangle {
+                positions: p,
+                normals: [Vec3::Y; 3],
+                colors: [[255; 4]; 3],
+                id: i,
+            });
+        }
+        let cell = Aabb::new(
+            Vec3::new(1000.0, 0.0, -2000.0),
+            Vec3::splat(50.0) + Vec3::new(1000.0, 0.0, -2000.0),
+        );
+        let v = Voxel::build(cell, &tris);
+        let p = PreparedVoxel::new(0, &v);
+        let dequantized = |n: &WideNode, c: usize| {
+            let min = [0, 1, 2].map(|a| p.frame.plane(a, n.qmin[a][c]));
+            let max = [0, 1, 2].map(|a| p.frame.plane(a, n.qmax[a][c]));
+            Aabb { min, max }
+        };
+        // (node, the box it must lie in)
+        let mut stack = vec![(0u32, None::<Aabb>)];
+        let mut leaves = 0;
+        while let Some((i, within)) = stack.pop() {
+            let n = &p.nodes[i as usize];
+            for c in 0..4 {
+                let kind = n.kind(c);
+                if kind == WideNode::EMPTY {
+                    continue;
+                }
+                let b = dequantized(n, c);
+                if let Some(w) = within {
+                    assert!(
+                        w.contains_box(&b),
+                        "node {i} child {c}: {b:?} outside {w:?}"
+                    );
+                }
+                if kind == 0 {
+                    stack.push((n.index(c), Some(b)));
+                    continue;
+                }
+                leaves += 1;
+                for k in n.index(c)..n.index(c) + kind {
+                    let tb = Aabb::from_points(&p.corners[k as usize].map(Vec3::from));
+                    assert!(b.contains_box(&tb), "leaf {k}: {tb:?} outside {b:?}");
+                }
+            }
+        }
+        assert!(leaves >= 3000 / 4);
+    }
+}
