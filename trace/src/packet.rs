@@ -307,14 +307,24 @@ impl<const N: usize> Packet<N> {
         // Uninitialised: zeroing 1 KiB on every voxel a packet enters
         // showed in profiles, and only written slots are read.
         let mut stack = [std::mem::MaybeUninit::<u32>::uninit(); 260];
-        stack[0].write(0);
-        let mut top = 1usize;
+        let mut top = 0usize;
+        // The entry to visit next without a trip through the stack: the
+        // nearest child a node pushes would be popped at once, and the
+        // store and load were on the path from one node load to the next.
+        const NONE: u32 = u32::MAX;
+        let mut next = 0u32;
         let dir0 = [self.dir[0][0], self.dir[1][0], self.dir[2][0]];
-        while top > 0 {
-            top -= 1;
-            // SAFETY: slots below `top` were all written (the root above,
-            // pushes below).
-            let entry = unsafe { stack[top].assume_init() };
+        loop {
+            let entry = if next != NONE {
+                next
+            } else if top > 0 {
+                top -= 1;
+                // SAFETY: slots below `top` were all written.
+                unsafe { stack[top].assume_init() }
+            } else {
+                break;
+            };
+            next = NONE;
             if entry & LEAF != 0 {
                 let first = entry & 0x00FF_FFFF;
                 let count = (entry >> 24) & 0x7F;
@@ -454,9 +464,12 @@ impl<const N: usize> Packet<N> {
                     hits[k] = x;
                 }
             }
-            for &(_, e) in &hits[..n] {
-                stack[top].write(e);
-                top += 1;
+            if n > 0 {
+                for &(_, e) in &hits[..n - 1] {
+                    stack[top].write(e);
+                    top += 1;
+                }
+                next = hits[n - 1].1;
             }
         }
     }
