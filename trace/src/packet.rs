@@ -299,8 +299,9 @@ impl<const N: usize> Packet<N> {
             return;
         }
         // Entries: a wide node index, or a leaf as LEAF | count << 24 |
-        // first (counts are at most 4, so first has 24 bits; longer leaves
-        // or voxels are pushed as several entries).
+        // first (counts are at most 4, so first has 24 bits; a leaf past
+        // that, in a voxel of over 16 M triangles, is tested where its
+        // parent finds it).
         const LEAF: u32 = 1 << 31;
         // Each wide level pushes at most 4 entries and the BVH is at most
         // 64 binary levels deep: 4 * 64 + 4 entries always fit.
