@@ -139,6 +139,19 @@ impl TopLevel {
 /// Each node's content box, children before parents (an explicit
 /// post-order walk: the manifest is trusted to be a tree, not to be in any
 /// particular order).
+/// Asks the CPU to start loading the cache line at `p` (a hint: it never
+/// faults, whatever `p` is).
+#[inline(always)]
+pub(crate) fn prefetch(p: *const u8) {
+    #[cfg(target_arch = "x86_64")]
+    // SAFETY: prefetching reads nothing and cannot fault, for any address.
+    unsafe {
+        std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(p as *const i8);
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = p;
+}
+
 fn content_boxes(m: &Manifest) -> Vec<Aabb> {
     let mut boxes = vec![Aabb::EMPTY; m.nodes.len()];
     let mut stack = vec![(0usize, false)];
@@ -383,6 +396,18 @@ pub struct PreparedVoxel {
 }
 
 impl PreparedVoxel {
+    /// Starts loading the root node and the two after it (in depth-first
+    /// order its first child and grandchild) into the cache: the first
+    /// loads of a packet that enters the voxel, which otherwise wait on
+    /// memory with nothing else to do (far views of the 12.5 M plant +2 %).
+    #[inline(always)]
+    pub fn prefetch_root(&self) {
+        let root = self.nodes.as_ptr() as *const u8;
+        for line in 0..3 {
+            prefetch(root.wrapping_add(64 * line));
+        }
+    }
+
     pub fn new(id: u32, v: &Voxel) -> PreparedVoxel {
         // The frame covers the root's box. Clipped to the voxel's content
         // box (each lane searches a voxel only within it), the quanta were
@@ -439,6 +464,14 @@ impl PreparedVoxel {
 /// that asked is suspended until the voxel arrives.
 pub trait VoxelSource: Sync {
     fn voxel(&self, id: u32) -> Option<VoxelRef<'_>>;
+
+    /// A hint that the kernel may soon enter voxel `id`: a source that
+    /// finds it without locks or counting starts loading the voxel's
+    /// first nodes into the cache ([`PreparedVoxel::prefetch_root`]).
+    /// Never counts as a use: nothing is recorded, nothing is marked
+    /// recently used. By default, nothing.
+    #[inline(always)]
+    fn prefetch(&self, _id: u32) {}
 }
 
 /// A voxel as a source hands it to the kernel: borrowed where the source
@@ -497,6 +530,13 @@ impl VoxelSource for ResidentSource {
     fn voxel(&self, id: u32) -> Option<VoxelRef<'_>> {
         self.voxels.get(id as usize).map(|v| VoxelRef::Borrowed(v))
     }
+
+    #[inline]
+    fn prefetch(&self, id: u32) {
+        if let Some(v) = self.voxels.get(id as usize) {
+            v.prefetch_root();
+        }
+    }
 }
 
 /// A source that records which voxels the kernel enters: the working set
@@ -530,6 +570,11 @@ impl<'a, S: VoxelSource> RecordingSource<'a, S> {
 }
 
 impl<S: VoxelSource> VoxelSource for RecordingSource<'_, S> {
+    fn prefetch(&self, id: u32) {
+        // A prefetched voxel may never be entered: not recorded.
+        self.inner.prefetch(id);
+    }
+
     fn voxel(&self, id: u32) -> Option<VoxelRef<'_>> {
         let v = self.inner.voxel(id)?;
         if let Some(e) = self.entered.get(id as usize) {

@@ -319,7 +319,8 @@ fn shadow_packets_trying_an_occluder_first_equal_brute_force() {
 }
 
 /// The recorded working set holds every voxel that holds a pixel's hit,
-/// is the same when the frame is rendered again, and is cleared by `take`.
+/// is the same when the frame is rendered again, is cleared by `take`, and
+/// leaves out voxels the kernel only prefetched.
 #[test]
 fn recorded_working_set_holds_every_hit_voxel() {
     use dray_trace::scene::RecordingSource;
@@ -345,4 +346,10 @@ fn recorded_working_set_holds_every_hit_voxel() {
         }
         assert!(!entered.is_empty(), "camera {k}: nothing entered");
     }
+    // The kernel's hint that it may enter a voxel soon is not an entry.
+    let mut rec = RecordingSource::new(&m.source, voxels);
+    for id in 0..voxels as u32 {
+        rec.prefetch(id);
+    }
+    assert!(rec.take().is_empty(), "a prefetch was recorded as an entry");
 }
