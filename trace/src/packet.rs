@@ -788,6 +788,14 @@ impl<const N: usize> Traversal<N> {
                 TopNode::Split {
                     axis, left, right, ..
                 } => {
+                    // A child that is a voxel: its first nodes start
+                    // loading now, while the packet tests the boxes
+                    // before it (far 12.5 M plant view +1-2 %).
+                    for child in [left, right] {
+                        if let TopNode::Leaf { voxel: Some(id) } = top.nodes[child as usize] {
+                            source.prefetch(id);
+                        }
+                    }
                     // Near child on top: forward rays meet the left cell
                     // first. A shadow packet (any hit will do) takes the
                     // far child first instead: it starts on a surface, and
@@ -798,14 +806,6 @@ impl<const N: usize> Traversal<N> {
                     // (55 → 300 with the occluder cache), Igea +18 %, the
                     // bunny +5 %, the 1 M plant +2-3 %, inside the 12.5 M
                     // plant -1 to -3 %.
-                    // A child that is a voxel: its first nodes start
-                    // loading now, while the packet tests the boxes
-                    // before it.
-                    for child in [left, right] {
-                        if let TopNode::Leaf { voxel: Some(id) } = top.nodes[child as usize] {
-                            source.prefetch(id);
-                        }
-                    }
                     let left_first = packet.dir[axis as usize][0] >= 0.0;
                     if left_first != packet.any_hit {
                         self.stack.push(right);

@@ -136,9 +136,6 @@ impl TopLevel {
     }
 }
 
-/// Each node's content box, children before parents (an explicit
-/// post-order walk: the manifest is trusted to be a tree, not to be in any
-/// particular order).
 /// Asks the CPU to start loading the cache line at `p` (a hint: it never
 /// faults, whatever `p` is).
 #[inline(always)]
@@ -152,6 +149,9 @@ pub(crate) fn prefetch(p: *const u8) {
     let _ = p;
 }
 
+/// Each node's content box, children before parents (an explicit
+/// post-order walk: the manifest is trusted to be a tree, not to be in any
+/// particular order).
 fn content_boxes(m: &Manifest) -> Vec<Aabb> {
     let mut boxes = vec![Aabb::EMPTY; m.nodes.len()];
     let mut stack = vec![(0usize, false)];
