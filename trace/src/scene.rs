@@ -399,7 +399,7 @@ impl PreparedVoxel {
     /// Starts loading the root node and the two after it (in depth-first
     /// order its first child and grandchild) into the cache: the first
     /// loads of a packet that enters the voxel, which otherwise wait on
-    /// memory with nothing else to do (far views of the 12.5 M plant +2 %).
+    /// memory with nothing else to do (far views of the 12.5 M plant +1-2 %).
     #[inline(always)]
     pub fn prefetch_root(&self) {
         let root = self.nodes.as_ptr() as *const u8;
