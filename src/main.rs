@@ -230,8 +230,9 @@ struct RenderArgs {
     /// this CPU has).
     #[arg(long, value_parser = parse_isa)]
     isa: Option<Isa>,
-    /// Rays per packet with AVX-512: auto (16 or 32 per tile, from how
-    /// coherent the rays of the tiles before were), 16 or 32.
+    /// Rays per packet with AVX-512: auto (per tile, from how coherent the
+    /// rays of the tiles before were), 16, 32, or sparse (16, and nodes
+    /// that at most four lanes enter tested for those four at once).
     #[arg(long, value_parser = parse_packets, default_value = "auto")]
     packets: Packets,
     /// Trace every shadow packet through the voxels, without first trying
@@ -357,7 +358,8 @@ fn parse_packets(s: &str) -> Result<Packets, String> {
         "auto" => Ok(Packets::Auto),
         "16" => Ok(Packets::Narrow),
         "32" => Ok(Packets::Wide),
-        _ => Err(format!("'{s}' is not auto, 16 or 32")),
+        "sparse" => Ok(Packets::Sparse),
+        _ => Err(format!("'{s}' is not auto, 16, 32 or sparse")),
     }
 }
 
@@ -860,7 +862,10 @@ fn render(a: &RenderArgs) -> Result<()> {
         settings.isa.name(),
         settings.isa.lanes(),
         if settings.isa == Isa::Avx512 {
-            format!(" (32 in {} tiles)", s.wide_tiles)
+            format!(
+                " (32 in {} tiles, sparse in {})",
+                s.wide_tiles, s.sparse_tiles
+            )
         } else {
             String::new()
         },
@@ -897,6 +902,7 @@ fn render(a: &RenderArgs) -> Result<()> {
             "isa": settings.isa.name(),
             "lanes": settings.isa.lanes(),
             "wide_tiles": s.wide_tiles,
+            "sparse_tiles": s.sparse_tiles,
             "seconds": seconds,
             "voxels": db.manifest.voxels.len(),
             "load_seconds": load_seconds,

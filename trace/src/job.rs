@@ -17,7 +17,9 @@
 use crate::camera::CameraBasis;
 use crate::clock;
 use crate::packet::{Occluder, Packet, Step, Traversal};
-use crate::render::{voxel_color, FrameStats, RenderSettings, AMBIENT, BACKGROUND, SHADOW_EPS};
+use crate::render::{
+    voxel_color, FrameStats, Isa, RenderSettings, AMBIENT, BACKGROUND, SHADOW_EPS,
+};
 use crate::scene::{TopLevel, VoxelSource};
 use crate::tile::Rect;
 use glam::Vec3;
@@ -37,6 +39,10 @@ pub(crate) struct Ctx<'a> {
     pub eps: f32,
     /// Fill `rgba` with [`depth_grey`] when not shading.
     pub grey: bool,
+    /// Whether 16-lane packets are sparse ([`crate::render::Packets`]):
+    /// set only where the kernel runs its AVX-512 code and the CPU has
+    /// AVX-512F and BMI2 (the callers clear it for other packets).
+    pub quad: bool,
 }
 
 impl<'a> Ctx<'a> {
@@ -53,6 +59,7 @@ impl<'a> Ctx<'a> {
             light: settings.light.normalize_or(Vec3::Y),
             eps: SHADOW_EPS * settings.scene_diagonal,
             grey,
+            quad: settings.isa == Isa::Avx512 && crate::quad::available(),
         }
     }
 }
@@ -176,6 +183,7 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
             dirs[i] = ctx.basis.direction(x0 + cx, y0 + cy);
         }
         self.packet = Packet::new(&[ctx.basis.eye; N], &dirs, 0.0, f32::INFINITY);
+        self.packet.quad = ctx.quad;
         // One primary packet in eight measures its coherence.
         self.packet.count_lanes = (bx / BW + by / (N as u32 / BW)) & (LANE_SAMPLE - 1) == 0;
         self.cur_dirs = dirs;
@@ -255,6 +263,7 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
                         self.packet =
                             Packet::new(&self.points, &[ctx.light; N], ctx.eps, f32::INFINITY);
                         self.packet.any_hit = true;
+                        self.packet.quad = ctx.quad;
                         self.try_occluder = ctx.settings.occluder_cache;
                         for i in 0..N {
                             // Lanes without a surface to light take no part.
@@ -449,6 +458,7 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
             self.reflected[i] = (d - n * (2.0 * d.dot(n))).normalize_or(n);
         }
         self.packet = Packet::new(&self.points, &self.reflected, ctx.eps, f32::INFINITY);
+        self.packet.quad = ctx.quad;
         for i in 0..N {
             if self.weight[i] == 0.0 {
                 self.packet.t[i] = f32::NEG_INFINITY;

@@ -14,6 +14,7 @@ pub mod clock;
 pub mod image;
 mod job;
 pub mod packet;
+mod quad;
 pub mod render;
 pub mod scene;
 pub mod tile;

@@ -23,6 +23,7 @@
 // shape LLVM vectorizes.
 #![allow(clippy::needless_range_loop)]
 
+use crate::quad;
 use crate::scene::{prefetch, PreparedVoxel, TopLevel, TopNode, VoxelSource, WideNode};
 use glam::Vec3;
 
@@ -79,6 +80,10 @@ pub struct Packet<const N: usize> {
     pub count_lanes: bool,
     pub child_hits: u32,
     pub child_lanes: u32,
+    /// Whether the packet may use AVX-512 intrinsics (`crate::quad`):
+    /// set only where the CPU has AVX-512F and BMI2, and used only with 16
+    /// lanes.
+    pub(crate) quad: bool,
 }
 
 /// A triangle that blocked a shadow ray: its corners and ORIGINAL id
@@ -134,6 +139,7 @@ impl<const N: usize> Packet<N> {
             count_lanes: false,
             child_hits: 0,
             child_lanes: 0,
+            quad: false,
         }
     }
 
@@ -298,11 +304,21 @@ impl<const N: usize> Packet<N> {
         if vox.nodes.is_empty() {
             return;
         }
-        // Entries: a wide node index, or a leaf as LEAF | count << 24 |
-        // first (counts are at most 4, so first has 24 bits; a leaf past
-        // that, in a voxel of over 16 M triangles, is tested where its
-        // parent finds it).
-        const LEAF: u32 = 1 << 31;
+        if N == 16 && self.quad {
+            self.voxel_sparse(shear, vox, seg)
+        } else {
+            self.voxel_dense(shear, vox, seg)
+        }
+    }
+
+    /// [`Self::voxel`] for every packet but sparse ones.
+    #[inline(always)]
+    fn voxel_dense<S: TriangleTest<N>>(
+        &mut self,
+        shear: &S,
+        vox: &PreparedVoxel,
+        seg: (&[f32; N], &[f32; N]),
+    ) {
         // Each wide level pushes at most 4 entries and the BVH is at most
         // 64 binary levels deep: 4 * 64 + 4 entries always fit.
         // Uninitialised: zeroing 1 KiB on every voxel a packet enters
@@ -312,7 +328,6 @@ impl<const N: usize> Packet<N> {
         // The entry to visit next without a trip through the stack: the
         // nearest child a node pushes would be popped at once, and the
         // store and load were on the path from one node load to the next.
-        const NONE: u32 = u32::MAX;
         let mut next = 0u32;
         let dir0 = [self.dir[0][0], self.dir[1][0], self.dir[2][0]];
         loop {
@@ -327,75 +342,14 @@ impl<const N: usize> Packet<N> {
             };
             next = NONE;
             if entry & LEAF != 0 {
-                let first = entry & 0x00FF_FFFF;
-                let count = (entry >> 24) & 0x7F;
-                for k in first..first + count {
-                    self.triangle(
-                        shear,
-                        &vox.corners[k as usize],
-                        vox.ids[k as usize],
-                        vox.id,
-                        k,
-                    );
-                }
-                if self.any_hit && self.all_blocked() {
+                if self.leaf(shear, vox, entry) {
                     return;
                 }
                 continue;
             }
             let node = &vox.nodes[entry as usize];
-            // Start loading every child before the box tests decide which
-            // are needed: these dependent loads are a large part of the
-            // traversal's time (about a third on far views), and the box
-            // tests hide part of their latency. Prefetching only
-            // the children that were hit, once sorted, was 15-20 % slower
-            // on far views, where the nearest child is visited at once.
-            //
-            // An interior child: its node and the two after it (in
-            // depth-first order its first child and grandchild; +1.5 % on
-            // the far 12.5 M plant view). A leaf: its corners (4 triangles
-            // span 144 bytes, three lines, or four where they start in a
-            // line's last 16 bytes) and its ids. Packets of up to 16 lanes,
-            // the incoherent ones, do it without branches: when each node
-            // is visited once, which children are leaves is data the
-            // branch predictor cannot learn (far views +2-4 %; 32-lane
-            // packets were 4 % slower so). An interior child's line is
-            // then asked for twice, and an empty slot prefetches the
-            // voxel's first corners. (Prefetches never fault:
-            // `wrapping_add` of any index is fine.)
-            for c in 0..4 {
-                let (kind, first) = (node.kind(c), node.index(c) as usize);
-                let n = vox.nodes.as_ptr().wrapping_add(first) as *const u8;
-                let t = vox.corners.as_ptr().wrapping_add(first) as *const u8;
-                let ids = vox.ids.as_ptr().wrapping_add(first) as *const u8;
-                if N <= 16 {
-                    let p = if kind == 0 { n } else { t };
-                    prefetch(p);
-                    prefetch(p.wrapping_add(64));
-                    prefetch(p.wrapping_add(128));
-                    prefetch(p.wrapping_add(143));
-                    prefetch(if kind == 0 { n } else { ids });
-                } else if kind == 0 {
-                    prefetch(n);
-                    prefetch(n.wrapping_add(64));
-                    prefetch(n.wrapping_add(128));
-                } else if kind != WideNode::EMPTY {
-                    prefetch(t);
-                    prefetch(t.wrapping_add(64));
-                    prefetch(t.wrapping_add(128));
-                    prefetch(t.wrapping_add(143));
-                    prefetch(ids);
-                }
-            }
-            // The children's boxes, out of the frame's fixed point.
-            let mut bmin = [[0.0f32; 4]; 3];
-            let mut bmax = [[0.0f32; 4]; 3];
-            for a in 0..3 {
-                for c in 0..4 {
-                    bmin[a][c] = vox.frame.plane(a, node.qmin[a][c]);
-                    bmax[a][c] = vox.frame.plane(a, node.qmax[a][c]);
-                }
-            }
+            prefetch_children::<N>(vox, node);
+            let (bmin, bmax) = dequantize(vox, node);
             // Test every child box; for nearest-hit queries, order the hit
             // ones by where the first ray meets their centres.
             let mut hits = [(0.0f32, 0u32); 4];
@@ -420,51 +374,15 @@ impl<const N: usize> Packet<N> {
                     for i in 0..N {
                         lanes += (t0[i] <= t1[i]) as u32;
                     }
-                    self.child_hits = self.child_hits.wrapping_add(1);
-                    self.child_lanes = self.child_lanes.wrapping_add(lanes);
+                    self.count_child(lanes);
                 }
-                let key = if self.any_hit {
-                    0.0
-                } else {
-                    (min[0] + max[0]) * dir0[0]
-                        + (min[1] + max[1]) * dir0[1]
-                        + (min[2] + max[2]) * dir0[2]
-                };
-                let first = node.index(c);
-                if kind == 0 {
-                    hits[n] = (key, first);
+                if let Some(e) = self.child_entry(shear, vox, node, c) {
+                    hits[n] = (self.child_key(min, max, dir0), e);
                     n += 1;
-                } else if first <= 0x00FF_FFFF {
-                    hits[n] = (key, LEAF | (kind << 24) | first);
-                    n += 1;
-                } else {
-                    // A leaf past what an entry can name (voxels of over
-                    // 16 M triangles; never built, kept exact).
-                    for k in first..first + kind {
-                        let c = &vox.corners[k as usize];
-                        self.triangle(shear, c, vox.ids[k as usize], vox.id, k);
-                    }
                 }
             }
-            // Far first on the stack, so the nearest is popped next (an
-            // insertion sort: a library sort of four costs more than the
-            // node's box tests). A shadow ray needs any hit, not the
-            // nearest: its children stay in their stored order, the last
-            // popped first. Sorting them near first made shadow rays 1-13 %
-            // slower (the living room and the scanned models the most),
-            // and the largest box first fell in between (likely because a
-            // shadow ray starts on a surface: the nearest boxes hold that
-            // surface, which cannot block it).
             if !self.any_hit {
-                for j in 1..n {
-                    let x = hits[j];
-                    let mut k = j;
-                    while k > 0 && hits[k - 1].0 < x.0 {
-                        hits[k] = hits[k - 1];
-                        k -= 1;
-                    }
-                    hits[k] = x;
-                }
+                sort_far_first(&mut hits[..n]);
             }
             if n > 0 {
                 for &(_, e) in &hits[..n - 1] {
@@ -475,6 +393,299 @@ impl<const N: usize> Packet<N> {
             }
         }
     }
+
+    /// [`Self::voxel`] for sparse packets (16 lanes, AVX-512 and BMI2):
+    /// each stack entry carries the lanes that entered its box (a lane left
+    /// out could not enter anything below it: its hit only comes nearer),
+    /// and a node that at most four lanes entered tests its children for
+    /// them at once (`crate::quad`). A search of its own, so that other
+    /// packets run the code they ran without it: keeping the lanes in the
+    /// same search made them 5-10 % slower.
+    #[inline(always)]
+    fn voxel_sparse<S: TriangleTest<N>>(
+        &mut self,
+        shear: &S,
+        vox: &PreparedVoxel,
+        seg: (&[f32; N], &[f32; N]),
+    ) {
+        // As in `voxel_dense`, entries with their lanes.
+        let mut stack = [std::mem::MaybeUninit::<(u32, u32)>::uninit(); 260];
+        let mut top = 0usize;
+        // SAFETY (every intrinsic below): sparse packets are traced only
+        // where the CPU has AVX-512F and BMI2.
+        let mut next = (0u32, unsafe { lanes_le16(as16(seg.0), as16(seg.1)) });
+        let dir0 = [self.dir[0][0], self.dir[1][0], self.dir[2][0]];
+        loop {
+            let (entry, lanes) = if next.0 != NONE {
+                next
+            } else if top > 0 {
+                top -= 1;
+                // SAFETY: slots below `top` were all written.
+                unsafe { stack[top].assume_init() }
+            } else {
+                break;
+            };
+            next.0 = NONE;
+            if entry & LEAF != 0 {
+                if self.leaf(shear, vox, entry) {
+                    return;
+                }
+                continue;
+            }
+            let node = &vox.nodes[entry as usize];
+            prefetch_children::<N>(vox, node);
+            let (bmin, bmax) = dequantize(vox, node);
+            let few = lanes.count_ones() <= 4;
+            let mut entered = [0; 4];
+            if few {
+                let mut slots = 0;
+                for c in 0..4 {
+                    slots |= ((node.kind(c) != WideNode::EMPTY) as u32) << c;
+                }
+                let rays = quad::Rays {
+                    org: as16x3(&self.org),
+                    inv: as16x3(&self.inv),
+                    lo: as16(seg.0),
+                    hi: as16(seg.1),
+                    t: as16(&self.t),
+                };
+                // `lanes` has at most four lanes.
+                entered = unsafe { children16(&rays, &bmin, &bmax, lanes, slots) };
+            }
+            let mut hits = [(0.0f32, (0u32, 0u32)); 4];
+            let mut n = 0;
+            for c in 0..4 {
+                if node.kind(c) == WideNode::EMPTY {
+                    break;
+                }
+                let min = [bmin[0][c], bmin[1][c], bmin[2][c]];
+                let max = [bmax[0][c], bmax[1][c], bmax[2][c]];
+                let child_lanes = if few {
+                    entered[c]
+                } else {
+                    let (t0, t1) = self.slab_within(min, max, seg.0, seg.1);
+                    unsafe { lanes_le16(as16(&t0), as16(&t1)) & lanes }
+                };
+                if child_lanes == 0 {
+                    continue;
+                }
+                if self.count_lanes {
+                    self.count_child(child_lanes.count_ones());
+                }
+                if let Some(e) = self.child_entry(shear, vox, node, c) {
+                    hits[n] = (self.child_key(min, max, dir0), (e, child_lanes));
+                    n += 1;
+                }
+            }
+            if !self.any_hit {
+                sort_far_first(&mut hits[..n]);
+            }
+            if n > 0 {
+                for &(_, e) in &hits[..n - 1] {
+                    stack[top].write(e);
+                    top += 1;
+                }
+                next = hits[n - 1].1;
+            }
+        }
+    }
+
+    /// Every lane against the triangles of the leaf `entry`; whether a
+    /// shadow packet is now wholly blocked (nothing left to search).
+    #[inline(always)]
+    fn leaf<S: TriangleTest<N>>(&mut self, shear: &S, vox: &PreparedVoxel, entry: u32) -> bool {
+        let first = entry & 0x00FF_FFFF;
+        let count = (entry >> 24) & 0x7F;
+        for k in first..first + count {
+            self.triangle(
+                shear,
+                &vox.corners[k as usize],
+                vox.ids[k as usize],
+                vox.id,
+                k,
+            );
+        }
+        self.any_hit && self.all_blocked()
+    }
+
+    /// The stack entry of child `c` of `node`, which some lane enters: its
+    /// node index, or its leaf. A leaf past what an entry can name (voxels
+    /// of over 16 M triangles; never built, kept exact) is tested at once
+    /// instead.
+    #[inline(always)]
+    fn child_entry<S: TriangleTest<N>>(
+        &mut self,
+        shear: &S,
+        vox: &PreparedVoxel,
+        node: &WideNode,
+        c: usize,
+    ) -> Option<u32> {
+        let (kind, first) = (node.kind(c), node.index(c));
+        if kind == 0 {
+            Some(first)
+        } else if first <= 0x00FF_FFFF {
+            Some(LEAF | (kind << 24) | first)
+        } else {
+            for k in first..first + kind {
+                let c = &vox.corners[k as usize];
+                self.triangle(shear, c, vox.ids[k as usize], vox.id, k);
+            }
+            None
+        }
+    }
+
+    /// Where the first ray meets the centre of the box `min`..`max`: the
+    /// order of a nearest-hit packet's children (none for any-hit ones).
+    #[inline(always)]
+    fn child_key(&self, min: [f32; 3], max: [f32; 3], dir0: [f32; 3]) -> f32 {
+        if self.any_hit {
+            0.0
+        } else {
+            (min[0] + max[0]) * dir0[0] + (min[1] + max[1]) * dir0[1] + (min[2] + max[2]) * dir0[2]
+        }
+    }
+
+    /// Counts a child box entered by `lanes` lanes (`count_lanes`).
+    #[inline(always)]
+    fn count_child(&mut self, lanes: u32) {
+        self.child_hits = self.child_hits.wrapping_add(1);
+        self.child_lanes = self.child_lanes.wrapping_add(lanes);
+    }
+}
+
+/// Stack entries of a voxel's search: a wide node index, or a leaf as
+/// LEAF | count << 24 | first (counts are at most 4, so first has 24 bits;
+/// a leaf past that, in a voxel of over 16 M triangles, is tested where its
+/// parent finds it).
+const LEAF: u32 = 1 << 31;
+/// No entry to visit next.
+const NONE: u32 = u32::MAX;
+
+/// Starts loading every child of `node` before the box tests decide which
+/// are needed: these dependent loads are a large part of the traversal's
+/// time (about a third on far views), and the box tests hide part of their
+/// latency. Prefetching only the children that were hit, once sorted, was
+/// 15-20 % slower on far views, where the nearest child is visited at
+/// once.
+///
+/// An interior child: its node and the two after it (in depth-first order
+/// its first child and grandchild; +1.5 % on the far 12.5 M plant view). A
+/// leaf: its corners (4 triangles span 144 bytes, three lines, or four
+/// where they start in a line's last 16 bytes) and its ids. Packets of up
+/// to 16 lanes, the incoherent ones, do it without branches: when each
+/// node is visited once, which children are leaves is data the branch
+/// predictor cannot learn (far views +2-4 %; 32-lane packets were 4 %
+/// slower so). An interior child's line is then asked for twice, and an
+/// empty slot prefetches the voxel's first corners. (Prefetches never
+/// fault: `wrapping_add` of any index is fine.)
+#[inline(always)]
+fn prefetch_children<const N: usize>(vox: &PreparedVoxel, node: &WideNode) {
+    for c in 0..4 {
+        let (kind, first) = (node.kind(c), node.index(c) as usize);
+        let n = vox.nodes.as_ptr().wrapping_add(first) as *const u8;
+        let t = vox.corners.as_ptr().wrapping_add(first) as *const u8;
+        let ids = vox.ids.as_ptr().wrapping_add(first) as *const u8;
+        if N <= 16 {
+            let p = if kind == 0 { n } else { t };
+            prefetch(p);
+            prefetch(p.wrapping_add(64));
+            prefetch(p.wrapping_add(128));
+            prefetch(p.wrapping_add(143));
+            prefetch(if kind == 0 { n } else { ids });
+        } else if kind == 0 {
+            prefetch(n);
+            prefetch(n.wrapping_add(64));
+            prefetch(n.wrapping_add(128));
+        } else if kind != WideNode::EMPTY {
+            prefetch(t);
+            prefetch(t.wrapping_add(64));
+            prefetch(t.wrapping_add(128));
+            prefetch(t.wrapping_add(143));
+            prefetch(ids);
+        }
+    }
+}
+
+/// The boxes of `node`'s children, out of the frame's fixed point:
+/// `(min, max)`, each per axis and child.
+#[inline(always)]
+#[allow(clippy::type_complexity)]
+fn dequantize(vox: &PreparedVoxel, node: &WideNode) -> ([[f32; 4]; 3], [[f32; 4]; 3]) {
+    let mut bmin = [[0.0f32; 4]; 3];
+    let mut bmax = [[0.0f32; 4]; 3];
+    for a in 0..3 {
+        for c in 0..4 {
+            bmin[a][c] = vox.frame.plane(a, node.qmin[a][c]);
+            bmax[a][c] = vox.frame.plane(a, node.qmax[a][c]);
+        }
+    }
+    (bmin, bmax)
+}
+
+/// Far first, so that the nearest is popped next: an insertion sort by the
+/// key (a library sort of four costs more than the node's box tests). A
+/// shadow packet needs any hit, not the nearest: its children stay in their
+/// stored order, the last popped first. Sorting them near first made shadow
+/// rays 1-13 % slower (the living room and the scanned models the most),
+/// and the largest box first fell in between (likely because a shadow ray
+/// starts on a surface: the nearest boxes hold that surface, which cannot
+/// block it).
+#[inline(always)]
+fn sort_far_first<T: Copy>(hits: &mut [(f32, T)]) {
+    for j in 1..hits.len() {
+        let x = hits[j];
+        let mut k = j;
+        while k > 0 && hits[k - 1].0 < x.0 {
+            hits[k] = hits[k - 1];
+            k -= 1;
+        }
+        hits[k] = x;
+    }
+}
+
+/// [`quad::lanes_le`] where it exists (elsewhere `quad` is never set).
+///
+/// # Safety
+/// As [`quad::lanes_le`].
+#[inline(always)]
+unsafe fn lanes_le16(t0: &[f32; 16], t1: &[f32; 16]) -> u32 {
+    #[cfg(target_arch = "x86_64")]
+    return quad::lanes_le(t0, t1);
+    #[cfg(not(target_arch = "x86_64"))]
+    return (0..16).fold(0, |m, i| m | (((t0[i] <= t1[i]) as u32) << i));
+}
+
+/// [`quad::children`] where it exists.
+///
+/// # Safety
+/// As [`quad::children`].
+#[inline(always)]
+unsafe fn children16(
+    rays: &quad::Rays,
+    bmin: &[[f32; 4]; 3],
+    bmax: &[[f32; 4]; 3],
+    lanes: u32,
+    slots: u32,
+) -> [u32; 4] {
+    #[cfg(target_arch = "x86_64")]
+    return quad::children(rays, bmin, bmax, lanes, slots);
+    #[cfg(not(target_arch = "x86_64"))]
+    return quad::children_by_lane(rays, bmin, bmax, lanes, slots);
+}
+
+/// A packet's lane array as the 16 lanes it is where `N` is 16.
+#[inline(always)]
+fn as16<const N: usize>(v: &[f32; N]) -> &[f32; 16] {
+    assert_eq!(N, 16);
+    // SAFETY: the same type, as N is 16.
+    unsafe { &*(v as *const [f32; N] as *const [f32; 16]) }
+}
+
+#[inline(always)]
+fn as16x3<const N: usize>(v: &[[f32; N]; 3]) -> &[[f32; 16]; 3] {
+    assert_eq!(N, 16);
+    // SAFETY: as `as16`.
+    unsafe { &*(v as *const [[f32; N]; 3] as *const [[f32; 16]; 3]) }
 }
 
 /// The watertight test (`dray_scene::geometry::intersect_triangle`,

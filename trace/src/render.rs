@@ -113,10 +113,13 @@ pub struct RenderSettings {
     pub occluder_cache: bool,
 }
 
-/// Rays per packet on AVX-512: 16 (4×4 pixels) or 32 (8×4). Wide packets
-/// pay off where the rays of a block stay together (inside the plants:
-/// 15–32 % faster), narrow ones where they part (a whole plant seen from
-/// afar: wide packets 5–9 % slower, Igea 5 %). Other ISAs always use 8.
+/// Rays per packet on AVX-512: 16 (4×4 pixels) or 32 (8×4), and how 16
+/// are traced. Wide packets pay off where the rays of a block stay
+/// together (inside the plants: 15–32 % faster), narrow ones where they
+/// part (a whole plant seen from afar: wide packets 5–9 % slower, Igea
+/// 5 %), and sparse ones where they part most: a node that at most four
+/// of the 16 lanes enter tests its four children for them at once
+/// (`crate::quad`). Other ISAs always use 8.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Packets {
     /// Chosen per tile from the tiles the same thread traced before
@@ -127,19 +130,25 @@ pub enum Packets {
     Narrow,
     /// Always 32.
     Wide,
+    /// Always 16, each stack entry with the lanes that entered its box,
+    /// and nodes that at most four lanes entered tested four lanes at a
+    /// time. Keeping the lanes costs 5–10 % where many enter each box;
+    /// from outside the plants, where 2–3 do, sparse packets are 3–9 %
+    /// faster than narrow ones.
+    Sparse,
 }
 
-/// Picks the packet width of a thread's next tile from the tiles it
-/// traced before: how many lanes of a primary packet enter each BVH child
-/// box that some lane enters (measured on a sample of the packets). With
-/// 16 lanes: 15.0 and 9.4 inside the 12.5 M and 1 M plants, where 32 lanes
+/// Picks the packets of a thread's next tile from the tiles it traced
+/// before: how many lanes of a primary packet enter each BVH child box
+/// that some lane enters (measured on a sample of the packets). With 16
+/// lanes: 15.0 and 9.4 inside the 12.5 M and 1 M plants, where 32 lanes
 /// are 32 % and 15 % faster; 7.4 in the living room (no difference); 5.3 on
-/// Igea and 2–3 on the far plant views (32 lanes slower). With 32 lanes:
-/// 28.9, 14.5, 9.9, 6.6 and 2–4.
+/// Igea and 2–3 on the far plant views (32 lanes slower, sparse 16 lanes
+/// faster). With 32 lanes: 28.9, 14.5, 9.9, 6.6 and 2–4.
 #[derive(Clone, Copy, Debug)]
 pub struct PacketChooser {
     mode: Packets,
-    wide: bool,
+    next: Packets,
 }
 
 impl PacketChooser {
@@ -147,27 +156,32 @@ impl PacketChooser {
     pub fn new(mode: Packets) -> PacketChooser {
         PacketChooser {
             mode,
-            wide: mode == Packets::Wide,
+            next: match mode {
+                Packets::Auto => Packets::Narrow,
+                fixed => fixed,
+            },
         }
     }
 
-    /// The width of the next tile: `Wide` or `Narrow`.
+    /// The packets of the next tile: `Wide`, `Narrow` or `Sparse`.
     pub fn next(&self) -> Packets {
-        if self.wide {
-            Packets::Wide
-        } else {
-            Packets::Narrow
-        }
+        self.next
     }
 
-    /// Learns from a tile traced at [`Self::next`]'s width, from its
+    /// Learns from a tile traced with [`Self::next`]'s packets, from its
     /// [`FrameStats::child_hits`] and [`FrameStats::child_lanes`].
     pub fn learn(&mut self, child_hits: u64, child_lanes: u64) {
         if self.mode != Packets::Auto || child_hits < MIN_CHILD_HITS {
             return;
         }
         let lanes = child_lanes as f64 / child_hits as f64;
-        self.wide = lanes >= if self.wide { STAY_WIDE } else { GO_WIDE };
+        self.next = match self.next {
+            Packets::Wide if lanes >= STAY_WIDE => Packets::Wide,
+            Packets::Sparse if lanes < STAY_SPARSE => Packets::Sparse,
+            _ if lanes >= GO_WIDE => Packets::Wide,
+            _ if lanes < GO_SPARSE => Packets::Sparse,
+            _ => Packets::Narrow,
+        };
     }
 }
 
@@ -175,6 +189,10 @@ impl PacketChooser {
 const GO_WIDE: f64 = 8.0;
 /// Lanes of 32 below which 16 are better again.
 const STAY_WIDE: f64 = 11.0;
+/// Lanes of 16 below which sparse packets pay off, and above which narrow
+/// ones are better again.
+const GO_SPARSE: f64 = 3.0;
+const STAY_SPARSE: f64 = 3.5;
 /// A tile with fewer sampled child boxes (mostly sky) says nothing.
 const MIN_CHILD_HITS: u64 = 32;
 
@@ -257,8 +275,9 @@ pub struct FrameStats {
     /// entered and the lanes that entered them.
     pub child_hits: u64,
     pub child_lanes: u64,
-    /// Tiles traced with 32-lane packets.
+    /// Tiles traced with 32-lane packets, and with sparse 16-lane ones.
     pub wide_tiles: u64,
+    pub sparse_tiles: u64,
 }
 
 struct Shared<'a> {
@@ -335,8 +354,7 @@ pub fn render(
                         break;
                     }
                     let (tx, ty) = (k as u32 % tiles_x, k as u32 / tiles_x);
-                    let wide = chooser.next() == Packets::Wide;
-                    match render_tile(&shared, tx * TILE, ty * TILE, wide) {
+                    match render_tile(&shared, tx * TILE, ty * TILE, chooser.next()) {
                         Ok(out) => {
                             chooser.learn(out.stats.child_hits, out.stats.child_lanes);
                             merge(&frame, out)
@@ -385,24 +403,35 @@ fn merge(frame: &Mutex<Frame>, out: TileOut) {
     s.child_hits += out.stats.child_hits;
     s.child_lanes += out.stats.child_lanes;
     s.wide_tiles += out.stats.wide_tiles;
+    s.sparse_tiles += out.stats.sparse_tiles;
 }
 
-fn render_tile(shared: &Shared, x0: u32, y0: u32, wide: bool) -> Result<TileOut, u32> {
+fn render_tile(shared: &Shared, x0: u32, y0: u32, packets: Packets) -> Result<TileOut, u32> {
     match shared.settings.isa {
         #[cfg(target_arch = "x86_64")]
         // SAFETY: `render` keeps an ISA only where `Isa::supported` says
         // this CPU has its features.
-        Isa::Avx512 if wide => unsafe { tile_avx512::<32, 8>(shared, x0, y0) }.map(|mut out| {
-            out.stats.wide_tiles = 1;
-            out
-        }),
+        Isa::Avx512 if packets == Packets::Wide => {
+            unsafe { tile_avx512::<32, 8>(shared, x0, y0, false) }.map(|mut out| {
+                out.stats.wide_tiles = 1;
+                out
+            })
+        }
         #[cfg(target_arch = "x86_64")]
         // SAFETY: as above.
-        Isa::Avx512 => unsafe { tile_avx512::<16, 4>(shared, x0, y0) },
+        Isa::Avx512 if packets == Packets::Sparse => {
+            unsafe { tile_avx512::<16, 4>(shared, x0, y0, true) }.map(|mut out| {
+                out.stats.sparse_tiles = 1;
+                out
+            })
+        }
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: as above.
+        Isa::Avx512 => unsafe { tile_avx512::<16, 4>(shared, x0, y0, false) },
         #[cfg(target_arch = "x86_64")]
         // SAFETY: as above.
         Isa::Avx2 => unsafe { tile_avx2(shared, x0, y0) },
-        _ => tile::<8, 4>(shared, x0, y0),
+        _ => tile::<8, 4>(shared, x0, y0, false),
     }
 }
 
@@ -414,21 +443,28 @@ unsafe fn tile_avx512<const N: usize, const BW: u32>(
     shared: &Shared,
     x0: u32,
     y0: u32,
+    sparse: bool,
 ) -> Result<TileOut, u32> {
-    tile::<N, BW>(shared, x0, y0)
+    tile::<N, BW>(shared, x0, y0, sparse)
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
 unsafe fn tile_avx2(shared: &Shared, x0: u32, y0: u32) -> Result<TileOut, u32> {
-    tile::<8, 4>(shared, x0, y0)
+    tile::<8, 4>(shared, x0, y0, false)
 }
 
 /// One tile in packets of N rays from BW-pixel-wide blocks, each run
 /// through the same resumable [`PacketJob`] as [`crate::tile::render_tile`]'s
-/// (here every voxel is resident, so a job never stops before it is done).
+/// (here every voxel is resident, so a job never stops before it is done);
+/// `sparse` packets as [`Packets::Sparse`] says.
 #[inline(always)]
-fn tile<const N: usize, const BW: u32>(shared: &Shared, x0: u32, y0: u32) -> Result<TileOut, u32> {
+fn tile<const N: usize, const BW: u32>(
+    shared: &Shared,
+    x0: u32,
+    y0: u32,
+    sparse: bool,
+) -> Result<TileOut, u32> {
     let bh = N as u32 / BW;
     let w = TILE.min(shared.width - x0);
     let h = TILE.min(shared.height - y0);
@@ -447,7 +483,8 @@ fn tile<const N: usize, const BW: u32>(shared: &Shared, x0: u32, y0: u32) -> Res
         },
         stats: FrameStats::default(),
     };
-    let ctx = Ctx::new(shared.top, shared.basis, settings, false);
+    let mut ctx = Ctx::new(shared.top, shared.basis, settings, false);
+    ctx.quad &= sparse;
     let rect = Rect {
         x0,
         y0,

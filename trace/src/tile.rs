@@ -156,7 +156,8 @@ pub async fn render_tile(
     } else {
         Isa::Portable
     };
-    let ctx = Ctx::new(top, camera.basis(), settings, true);
+    let mut ctx = Ctx::new(top, camera.basis(), settings, true);
+    ctx.quad &= settings.packets == Packets::Sparse;
     match isa {
         #[cfg(target_arch = "x86_64")]
         Isa::Avx512 if settings.packets == Packets::Wide => {

@@ -50,10 +50,15 @@ fn check_against_brute_force(m: &Model, camera: &Camera, frame: &Frame, what: &s
 
 #[test]
 fn packets_of_every_width_equal_brute_force() {
-    // 16 and 32 lanes where the CPU has AVX-512 (8 elsewhere), and the
-    // per-tile choice between them.
+    // 16 and 32 lanes and sparse 16 where the CPU has AVX-512 (8
+    // elsewhere), and the per-tile choice between them.
     let m = plant(20_000);
-    for packets in [Packets::Narrow, Packets::Wide, Packets::Auto] {
+    for packets in [
+        Packets::Narrow,
+        Packets::Wide,
+        Packets::Sparse,
+        Packets::Auto,
+    ] {
         for (k, cam) in cameras(&m, 96, 72).iter().enumerate() {
             let s = RenderSettings {
                 packets,
@@ -63,6 +68,9 @@ fn packets_of_every_width_equal_brute_force() {
             check_against_brute_force(&m, cam, &frame, &format!("{packets:?} camera {k}"));
             if packets == Packets::Wide && Isa::detect() == Isa::Avx512 {
                 assert!(frame.stats.wide_tiles > 0, "no tile was traced wide");
+            }
+            if packets == Packets::Sparse && Isa::detect() == Isa::Avx512 {
+                assert!(frame.stats.sparse_tiles > 0, "no tile was traced sparse");
             }
         }
     }

@@ -357,35 +357,41 @@ async fn tiny_cache_random_arrivals_give_identical_tiles() {
     );
 }
 
-/// Tiles of 32-lane packets, with voxels arriving in random order, give
-/// the pixels of 16-lane packets (shaded, shadows, reflections).
+/// Tiles of 32-lane packets and of sparse 16-lane ones, with voxels
+/// arriving in random order, give the pixels of 16-lane packets (shaded,
+/// shadows, reflections), and so do frames of sparse packets.
 #[tokio::test(start_paused = true)]
-async fn wide_packet_tiles_equal_the_narrow_frame() {
+async fn wide_and_sparse_packet_tiles_equal_the_narrow_frame() {
     let m = plant(20_000);
     let narrow = RenderSettings {
         packets: Packets::Narrow,
         ..shaded(Isa::detect(), &m)
     };
-    let wide = RenderSettings {
-        packets: Packets::Wide,
-        ..narrow.clone()
-    };
-    for (k, cam) in cameras(&m, 64, 48).iter().enumerate() {
-        let frame = reference(&m, cam, &narrow);
-        for (g, rects) in rect_grids(cam) {
-            let loader = TinyCache::new(&m.source, 3, 7 + k as u64);
-            let what = format!("camera {k} wide tiles {g}");
-            check_rects(
-                &m,
-                &loader,
-                cam,
-                &wide,
-                &frame,
-                &rects,
-                MissMode::Suspend,
-                &what,
-            )
-            .await;
+    for packets in [Packets::Wide, Packets::Sparse] {
+        let other = RenderSettings {
+            packets,
+            ..narrow.clone()
+        };
+        for (k, cam) in cameras(&m, 64, 48).iter().enumerate() {
+            let frame = reference(&m, cam, &narrow);
+            let whole = reference(&m, cam, &other);
+            assert_eq!(frame.rgba, whole.rgba, "camera {k} {packets:?} frame");
+            assert_eq!(frame.primid, whole.primid, "camera {k} {packets:?} frame");
+            for (g, rects) in rect_grids(cam) {
+                let loader = TinyCache::new(&m.source, 3, 7 + k as u64);
+                let what = format!("camera {k} {packets:?} tiles {g}");
+                check_rects(
+                    &m,
+                    &loader,
+                    cam,
+                    &other,
+                    &frame,
+                    &rects,
+                    MissMode::Suspend,
+                    &what,
+                )
+                .await;
+            }
         }
     }
 }
