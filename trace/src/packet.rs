@@ -304,16 +304,20 @@ impl<const N: usize> Packet<N> {
         if vox.nodes.is_empty() {
             return;
         }
+        // Sparse packets (16 lanes, AVX-512 and BMI2) keep each entry's
+        // lanes; the others search without them, in code of their own:
+        // keeping the lanes made every other packet 5-10 % slower.
         if N == 16 && self.quad {
-            self.voxel_sparse(shear, vox, seg)
+            self.search::<S, LaneMask>(shear, vox, seg)
         } else {
-            self.voxel_dense(shear, vox, seg)
+            self.search::<S, AllLanes>(shear, vox, seg)
         }
     }
 
-    /// [`Self::voxel`] for every packet but sparse ones.
+    /// The search of one voxel's BVH, with `L` the lanes each stack entry
+    /// stands for.
     #[inline(always)]
-    fn voxel_dense<S: TriangleTest<N>>(
+    fn search<S: TriangleTest<N>, L: EntryLanes<N>>(
         &mut self,
         shear: &S,
         vox: &PreparedVoxel,
@@ -323,97 +327,12 @@ impl<const N: usize> Packet<N> {
         // 64 binary levels deep: 4 * 64 + 4 entries always fit.
         // Uninitialised: zeroing 1 KiB on every voxel a packet enters
         // showed in profiles, and only written slots are read.
-        let mut stack = [std::mem::MaybeUninit::<u32>::uninit(); 260];
+        let mut stack = [std::mem::MaybeUninit::<(u32, L)>::uninit(); 260];
         let mut top = 0usize;
         // The entry to visit next without a trip through the stack: the
         // nearest child a node pushes would be popped at once, and the
         // store and load were on the path from one node load to the next.
-        let mut next = 0u32;
-        let dir0 = [self.dir[0][0], self.dir[1][0], self.dir[2][0]];
-        loop {
-            let entry = if next != NONE {
-                next
-            } else if top > 0 {
-                top -= 1;
-                // SAFETY: slots below `top` were all written.
-                unsafe { stack[top].assume_init() }
-            } else {
-                break;
-            };
-            next = NONE;
-            if entry & LEAF != 0 {
-                if self.leaf(shear, vox, entry) {
-                    return;
-                }
-                continue;
-            }
-            let node = &vox.nodes[entry as usize];
-            prefetch_children::<N>(vox, node);
-            let (bmin, bmax) = dequantize(vox, node);
-            // Test every child box; for nearest-hit queries, order the hit
-            // ones by where the first ray meets their centres.
-            let mut hits = [(0.0f32, 0u32); 4];
-            let mut n = 0;
-            for c in 0..4 {
-                let kind = node.kind(c);
-                if kind == WideNode::EMPTY {
-                    break;
-                }
-                let min = [bmin[0][c], bmin[1][c], bmin[2][c]];
-                let max = [bmax[0][c], bmax[1][c], bmax[2][c]];
-                let (t0, t1) = self.slab_within(min, max, seg.0, seg.1);
-                let mut any = false;
-                for i in 0..N {
-                    any |= t0[i] <= t1[i];
-                }
-                if !any {
-                    continue;
-                }
-                if self.count_lanes {
-                    let mut lanes = 0u32;
-                    for i in 0..N {
-                        lanes += (t0[i] <= t1[i]) as u32;
-                    }
-                    self.count_child(lanes);
-                }
-                if let Some(e) = self.child_entry(shear, vox, node, c) {
-                    hits[n] = (self.child_key(min, max, dir0), e);
-                    n += 1;
-                }
-            }
-            if !self.any_hit {
-                sort_far_first(&mut hits[..n]);
-            }
-            if n > 0 {
-                for &(_, e) in &hits[..n - 1] {
-                    stack[top].write(e);
-                    top += 1;
-                }
-                next = hits[n - 1].1;
-            }
-        }
-    }
-
-    /// [`Self::voxel`] for sparse packets (16 lanes, AVX-512 and BMI2):
-    /// each stack entry carries the lanes that entered its box (a lane left
-    /// out could not enter anything below it: its hit only comes nearer),
-    /// and a node that at most four lanes entered tests its children for
-    /// them at once (`crate::quad`). A search of its own, so that other
-    /// packets run the code they ran without it: keeping the lanes in the
-    /// same search made them 5-10 % slower.
-    #[inline(always)]
-    fn voxel_sparse<S: TriangleTest<N>>(
-        &mut self,
-        shear: &S,
-        vox: &PreparedVoxel,
-        seg: (&[f32; N], &[f32; N]),
-    ) {
-        // As in `voxel_dense`, entries with their lanes.
-        let mut stack = [std::mem::MaybeUninit::<(u32, u32)>::uninit(); 260];
-        let mut top = 0usize;
-        // SAFETY (every intrinsic below): sparse packets are traced only
-        // where the CPU has AVX-512F and BMI2.
-        let mut next = (0u32, unsafe { lanes_le16(as16(seg.0), as16(seg.1)) });
+        let mut next = (0u32, L::root(self, seg));
         let dir0 = [self.dir[0][0], self.dir[1][0], self.dir[2][0]];
         loop {
             let (entry, lanes) = if next.0 != NONE {
@@ -435,24 +354,10 @@ impl<const N: usize> Packet<N> {
             let node = &vox.nodes[entry as usize];
             prefetch_children::<N>(vox, node);
             let (bmin, bmax) = dequantize(vox, node);
-            let few = lanes.count_ones() <= 4;
-            let mut entered = [0; 4];
-            if few {
-                let mut slots = 0;
-                for c in 0..4 {
-                    slots |= ((node.kind(c) != WideNode::EMPTY) as u32) << c;
-                }
-                let rays = quad::Rays {
-                    org: as16x3(&self.org),
-                    inv: as16x3(&self.inv),
-                    lo: as16(seg.0),
-                    hi: as16(seg.1),
-                    t: as16(&self.t),
-                };
-                // `lanes` has at most four lanes.
-                entered = unsafe { children16(&rays, &bmin, &bmax, lanes, slots) };
-            }
-            let mut hits = [(0.0f32, (0u32, 0u32)); 4];
+            let tested = L::node(self, lanes, node, (&bmin, &bmax), seg);
+            // Test every child box; for nearest-hit queries, order the hit
+            // ones by where the first ray meets their centres.
+            let mut hits = [(0.0f32, (0u32, lanes)); 4];
             let mut n = 0;
             for c in 0..4 {
                 if node.kind(c) == WideNode::EMPTY {
@@ -460,18 +365,9 @@ impl<const N: usize> Packet<N> {
                 }
                 let min = [bmin[0][c], bmin[1][c], bmin[2][c]];
                 let max = [bmax[0][c], bmax[1][c], bmax[2][c]];
-                let child_lanes = if few {
-                    entered[c]
-                } else {
-                    let (t0, t1) = self.slab_within(min, max, seg.0, seg.1);
-                    unsafe { lanes_le16(as16(&t0), as16(&t1)) & lanes }
-                };
-                if child_lanes == 0 {
+                let Some(child_lanes) = L::child(self, lanes, &tested, c, (min, max), seg) else {
                     continue;
-                }
-                if self.count_lanes {
-                    self.count_child(child_lanes.count_ones());
-                }
+                };
                 if let Some(e) = self.child_entry(shear, vox, node, c) {
                     hits[n] = (self.child_key(min, max, dir0), (e, child_lanes));
                     n += 1;
@@ -550,6 +446,153 @@ impl<const N: usize> Packet<N> {
     fn count_child(&mut self, lanes: u32) {
         self.child_hits = self.child_hits.wrapping_add(1);
         self.child_lanes = self.child_lanes.wrapping_add(lanes);
+    }
+}
+
+/// Which lanes an entry of a voxel's search stands for, and how a node's
+/// children are tested for them.
+trait EntryLanes<const N: usize>: Copy {
+    /// What a node works out before its children are tested one by one.
+    type Tested;
+    /// The lanes of the voxel's root: those whose interval `seg` is not
+    /// empty.
+    fn root(p: &Packet<N>, seg: (&[f32; N], &[f32; N])) -> Self;
+    #[allow(clippy::type_complexity)]
+    fn node(
+        p: &Packet<N>,
+        lanes: Self,
+        node: &WideNode,
+        boxes: (&[[f32; 4]; 3], &[[f32; 4]; 3]),
+        seg: (&[f32; N], &[f32; N]),
+    ) -> Self::Tested;
+    /// The lanes of `lanes` that enter child `c` (`min`, `max`), if any,
+    /// counted where the packet counts its lanes.
+    fn child(
+        p: &mut Packet<N>,
+        lanes: Self,
+        tested: &Self::Tested,
+        c: usize,
+        child: ([f32; 3], [f32; 3]),
+        seg: (&[f32; N], &[f32; N]),
+    ) -> Option<Self>;
+}
+
+/// Every lane takes part in every entry (no lanes kept).
+#[derive(Clone, Copy)]
+struct AllLanes;
+
+impl<const N: usize> EntryLanes<N> for AllLanes {
+    type Tested = ();
+
+    #[inline(always)]
+    fn root(_: &Packet<N>, _: (&[f32; N], &[f32; N])) -> Self {
+        AllLanes
+    }
+
+    #[inline(always)]
+    fn node(
+        _: &Packet<N>,
+        _: Self,
+        _: &WideNode,
+        _: (&[[f32; 4]; 3], &[[f32; 4]; 3]),
+        _: (&[f32; N], &[f32; N]),
+    ) {
+    }
+
+    #[inline(always)]
+    fn child(
+        p: &mut Packet<N>,
+        _: Self,
+        _: &(),
+        _: usize,
+        (min, max): ([f32; 3], [f32; 3]),
+        seg: (&[f32; N], &[f32; N]),
+    ) -> Option<Self> {
+        let (t0, t1) = p.slab_within(min, max, seg.0, seg.1);
+        let mut any = false;
+        for i in 0..N {
+            any |= t0[i] <= t1[i];
+        }
+        if !any {
+            return None;
+        }
+        if p.count_lanes {
+            let mut lanes = 0u32;
+            for i in 0..N {
+                lanes += (t0[i] <= t1[i]) as u32;
+            }
+            p.count_child(lanes);
+        }
+        Some(AllLanes)
+    }
+}
+
+/// The lanes that entered an entry's box, a bit each (sparse packets: 16
+/// lanes, AVX-512 and BMI2). A lane left out could not enter anything
+/// below it, as its hit only comes nearer; a node that at most four lanes
+/// entered tests its children for them at once (`crate::quad`).
+#[derive(Clone, Copy)]
+struct LaneMask(u32);
+
+// SAFETY (every intrinsic in this impl): a packet is sparse only where the
+// CPU has AVX-512F and BMI2, and only with 16 lanes.
+impl<const N: usize> EntryLanes<N> for LaneMask {
+    /// The lanes entering each child where at most four entered the node.
+    type Tested = Option<[u32; 4]>;
+
+    #[inline(always)]
+    fn root(_: &Packet<N>, seg: (&[f32; N], &[f32; N])) -> Self {
+        LaneMask(unsafe { lanes_le16(as16(seg.0), as16(seg.1)) })
+    }
+
+    #[inline(always)]
+    fn node(
+        p: &Packet<N>,
+        lanes: Self,
+        node: &WideNode,
+        (bmin, bmax): (&[[f32; 4]; 3], &[[f32; 4]; 3]),
+        seg: (&[f32; N], &[f32; N]),
+    ) -> Option<[u32; 4]> {
+        if lanes.0.count_ones() > 4 {
+            return None;
+        }
+        let mut slots = 0;
+        for c in 0..4 {
+            slots |= ((node.kind(c) != WideNode::EMPTY) as u32) << c;
+        }
+        let rays = quad::Rays {
+            org: as16x3(&p.org),
+            inv: as16x3(&p.inv),
+            lo: as16(seg.0),
+            hi: as16(seg.1),
+            t: as16(&p.t),
+        };
+        Some(unsafe { children16(&rays, bmin, bmax, lanes.0, slots) })
+    }
+
+    #[inline(always)]
+    fn child(
+        p: &mut Packet<N>,
+        lanes: Self,
+        tested: &Option<[u32; 4]>,
+        c: usize,
+        (min, max): ([f32; 3], [f32; 3]),
+        seg: (&[f32; N], &[f32; N]),
+    ) -> Option<Self> {
+        let entered = match tested {
+            Some(entered) => entered[c],
+            None => {
+                let (t0, t1) = p.slab_within(min, max, seg.0, seg.1);
+                unsafe { lanes_le16(as16(&t0), as16(&t1)) & lanes.0 }
+            }
+        };
+        if entered == 0 {
+            return None;
+        }
+        if p.count_lanes {
+            p.count_child(entered.count_ones());
+        }
+        Some(LaneMask(entered))
     }
 }
 
