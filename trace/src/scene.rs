@@ -172,6 +172,36 @@ fn content_boxes(m: &Manifest) -> Vec<Aabb> {
     boxes
 }
 
+/// The voxel's BVH with its boxes clipped to the voxel's cell: each leaf
+/// the union of its triangles' bounds, each clipped to the cell.
+fn clipped_to_cell(v: &Voxel) -> Vec<BvhNode> {
+    let mut nodes = v.bvh.clone();
+    for i in (0..nodes.len()).rev() {
+        let n = nodes[i];
+        nodes[i].bounds = if n.is_leaf() {
+            let mut b = Aabb::EMPTY;
+            for t in &v.triangles[n.first as usize..(n.first + n.count) as usize] {
+                let mut tb = Aabb::EMPTY;
+                for &k in t {
+                    tb.grow(Vec3::from_array(v.positions[k as usize]));
+                }
+                let c = tb.intersection(&v.bounds);
+                if !c.is_empty() {
+                    b = b.union(&c);
+                }
+            }
+            if b.is_empty() {
+                n.bounds
+            } else {
+                b
+            }
+        } else {
+            nodes[i + 1].bounds.union(&nodes[n.first as usize].bounds)
+        };
+    }
+    nodes
+}
+
 /// A node of the kernel's 4-wide BVH in one cache line: the boxes of up to
 /// four children side by side (one node load tests all of them against a
 /// packet) in 16-bit fixed point within the voxel's [`Frame`], and for each
@@ -413,11 +443,11 @@ impl PreparedVoxel {
         // box (each lane searches a voxel only within it), the quanta were
         // finer, typically 5 times, but primary rays inside the 12.5 M
         // plant were 8 % slower.
-        let frame = v
-            .bvh
+        let bvh = clipped_to_cell(v);
+        let frame = bvh
             .first()
             .map_or(Frame::EMPTY, |root| Frame::covering(&root.bounds));
-        let nodes = widen(&v.bvh, &frame);
+        let nodes = widen(&bvh, &frame);
         let corners: Vec<[[f32; 3]; 3]> = v
             .triangles
             .iter()
@@ -652,20 +682,31 @@ mod tests {
     }
 
     /// Every child box of the wide BVH, out of the frame's fixed point,
-    /// holds every triangle below it: small triangles far from the frame's
-    /// origin (coarse quanta against them) and long ones across it.
+    /// holds the part within the voxel's cell of every triangle below it
+    /// (small triangles far from the frame's origin, coarse quanta against
+    /// them, and long ones across it and out of the cell), and no box
+    /// reaches out of the cell by more than a quantum.
     #[test]
     fn dequantized_boxes_hold_their_triangles() {
         let mut r = dray_scene::rng::Rng::new(7);
         let mut tris = Vec::new();
         for i in 0..3000u32 {
+            // Every triangle reaches into the cell (its first corner),
+            // as the preprocessor's do.
             let base = Vec3::new(
                 r.range(1000.0, 1050.0),
                 r.range(0.0, 50.0),
                 r.range(-2000.0, -1950.0),
             );
             let size = if i % 100 == 0 { 200.0 } else { 0.01 };
-            let p = [0, 1, 2].map(|_| base + Vec3::new(r.unit(), r.unit(), r.unit()) * size);
+            let p = [0, 1, 2].map(|k| {
+                let offset = Vec3::new(r.unit(), r.unit(), r.unit()) * size;
+                if k == 0 {
+                    base
+                } else {
+                    base + offset
+                }
+            });
             tris.push(Triangle {
                 positions: p,
                 normals: [Vec3::Y; 3],
@@ -695,6 +736,11 @@ mod tests {
                     continue;
                 }
                 let b = dequantized(n, c);
+                for a in 0..3 {
+                    let quantum = p.frame.scale[a];
+                    assert!(b.min[a] >= cell.min[a] - quantum, "{b:?} out of {cell:?}");
+                    assert!(b.max[a] <= cell.max[a] + quantum, "{b:?} out of {cell:?}");
+                }
                 if let Some(w) = within {
                     assert!(
                         w.contains_box(&b),
@@ -708,6 +754,7 @@ mod tests {
                 leaves += 1;
                 for k in n.index(c)..n.index(c) + kind {
                     let tb = Aabb::from_points(&p.corners[k as usize].map(Vec3::from));
+                    let tb = tb.intersection(&cell);
                     assert!(b.contains_box(&tb), "leaf {k}: {tb:?} outside {b:?}");
                 }
             }

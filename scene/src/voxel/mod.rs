@@ -99,7 +99,20 @@ impl Voxel {
                 "voxel build: dropped triangles with non-finite coordinates"
             );
         }
-        let prim_bounds: Vec<Aabb> = finite.iter().map(|t| t.bounds()).collect();
+        // Each triangle's bounds within the cell: that is all of it the
+        // voxel's BVH needs to find (hits outside the cell are found in the
+        // voxels there), and the kernel clips the boxes so.
+        let prim_bounds: Vec<Aabb> = finite
+            .iter()
+            .map(|t| {
+                let clipped = t.bounds().intersection(&bounds);
+                if clipped.is_empty() {
+                    t.bounds()
+                } else {
+                    clipped
+                }
+            })
+            .collect();
         let (mut nodes, order) = bvh::build(&prim_bounds);
 
         let mut v = Voxel {
