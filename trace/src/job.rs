@@ -217,8 +217,8 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
                 Stage::Primary | Stage::Shadow | Stage::Reflect => {
                     let shadow = self.stage == Stage::Shadow;
                     let started = shadow.then(clock::ticks);
-                    // A new shadow packet first tries the triangle that
-                    // blocked the one before; where that blocks every
+                    // A new shadow packet first tries the triangles that
+                    // blocked the ones before; where they block every
                     // lane, it needs no traversal.
                     let blocked =
                         std::mem::take(&mut self.try_occluder) && self.try_last_occluders();
@@ -294,10 +294,10 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
 
     /// Blocks the shadow packet's lanes that the last occluders block;
     /// whether that blocked every lane. A try that blocks nothing costs
-    /// about one triangle test an occluder. Resting a few packets after such a try
-    /// made the views where it seldom blocks anything no faster, and the
-    /// living room slower (61 and 48 Mrays/s for one and three packets'
-    /// rest, against 69).
+    /// about one triangle test an occluder. Resting a few packets after
+    /// such a try made the views where it seldom blocks anything no faster,
+    /// and the living room slower (61 and 48 Mrays/s for one and three
+    /// packets' rest, against 69).
     #[inline(always)]
     fn try_last_occluders(&mut self) -> bool {
         for o in self.last_occluders.iter().flatten() {

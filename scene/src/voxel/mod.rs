@@ -81,8 +81,9 @@ pub enum VoxelError {
 }
 
 impl Voxel {
-    /// Builds a voxel from triangles: binned SAH BVH ([`bvh::SAH_BINS`] bins,
-    /// leaves of at most [`MAX_LEAF_TRIANGLES`]), triangles in leaf order,
+    /// Builds the voxel of cell `bounds` from triangles: binned SAH BVH
+    /// ([`bvh::SAH_BINS`] bins over the triangles' bounds clipped to the
+    /// cell, leaves of at most [`MAX_LEAF_TRIANGLES`]), triangles in leaf order,
     /// vertices de-duplicated (same position, encoded normal and color bits)
     /// and numbered by first use.
     ///
