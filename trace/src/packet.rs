@@ -7,7 +7,10 @@
 //! AVX-512 (16 lanes) or AVX2 (8 lanes), chosen at run time, with a portable
 //! fallback. Hand-written intrinsics would tie the kernel to one ISA; the
 //! generated code was checked (objdump) to do its arithmetic on full-width
-//! vector registers.
+//! vector registers. The one exception is sparse 16-lane packets
+//! (`crate::quad`): lane masks and a node's children tested for four lanes
+//! at once need AVX-512 instructions LLVM does not emit from lane loops;
+//! they have a lane-by-lane twin, which a test compares them with.
 //!
 //! [`Traversal`] walks the high-level BSP front to back as a hierarchy of
 //! content boxes, then each voxel's 4-wide BVH, culling per lane against

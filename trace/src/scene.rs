@@ -185,7 +185,7 @@ fn content_boxes(m: &Manifest) -> Vec<Aabb> {
 /// took a voxel's boxes, and its frame, far out of its cell; clipped (and
 /// with the preprocessor's SAH build binning the clipped bounds too), the
 /// plants' shadow rays were 3-6 % faster, inside the 12.5 M plant 24 %,
-/// and primary rays 1-10 %. A leaf none of whose triangles reaches into
+/// and primary rays up to 10 %. A leaf none of whose triangles reaches into
 /// the cell (never built by the preprocessor) keeps its whole box.
 fn clipped_to_cell(v: &Voxel) -> Vec<BvhNode> {
     let mut nodes = v.bvh.clone();
