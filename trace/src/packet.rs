@@ -393,18 +393,23 @@ impl<const N: usize> Packet<N> {
     /// shadow packet is now wholly blocked (nothing left to search).
     #[inline(always)]
     fn leaf<S: TriangleTest<N>>(&mut self, shear: &S, vox: &PreparedVoxel, entry: u32) -> bool {
-        let first = entry & 0x00FF_FFFF;
-        let count = (entry >> 24) & 0x7F;
-        for k in first..first + count {
-            self.triangle(
-                shear,
-                &vox.corners[k as usize],
-                vox.ids[k as usize],
-                vox.id,
-                k,
-            );
-        }
+        self.triangles(shear, vox, entry & 0x00FF_FFFF, (entry >> 24) & 0x7F);
         self.any_hit && self.all_blocked()
+    }
+
+    /// Every lane against the voxel's triangles `first..first + count`.
+    #[inline(always)]
+    fn triangles<S: TriangleTest<N>>(
+        &mut self,
+        shear: &S,
+        vox: &PreparedVoxel,
+        first: u32,
+        count: u32,
+    ) {
+        for k in first..first + count {
+            let (corners, id) = (&vox.corners[k as usize], vox.ids[k as usize]);
+            self.triangle(shear, corners, id, vox.id, k);
+        }
     }
 
     /// The stack entry of child `c` of `node`, which some lane enters: its
@@ -425,10 +430,7 @@ impl<const N: usize> Packet<N> {
         } else if first <= 0x00FF_FFFF {
             Some(LEAF | (kind << 24) | first)
         } else {
-            for k in first..first + kind {
-                let c = &vox.corners[k as usize];
-                self.triangle(shear, c, vox.ids[k as usize], vox.id, k);
-            }
+            self.triangles(shear, vox, first, kind);
             None
         }
     }
