@@ -43,6 +43,10 @@ pub(crate) struct Ctx<'a> {
     /// set only where the kernel runs its AVX-512 code and the CPU has
     /// AVX-512F and BMI2 (the callers clear it for other packets).
     pub quad: bool,
+    /// Whether 16-lane shadow packets hand sparse subtrees over to groups
+    /// of lanes ([`Packet::hand_off_sparse_subtrees`]): where the kernel
+    /// runs its AVX-512 code.
+    pub groups: bool,
 }
 
 impl<'a> Ctx<'a> {
@@ -60,6 +64,7 @@ impl<'a> Ctx<'a> {
             eps: SHADOW_EPS * settings.scene_diagonal,
             grey,
             quad: settings.isa == Isa::Avx512 && crate::quad::available(),
+            groups: settings.isa == Isa::Avx512,
         }
     }
 }
@@ -275,6 +280,9 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
                             Packet::new(&self.points, &[ctx.light; N], ctx.eps, f32::INFINITY);
                         self.packet.any_hit = true;
                         self.packet.quad = ctx.quad;
+                        if ctx.groups {
+                            self.packet.hand_off_sparse_subtrees();
+                        }
                         self.try_occluder = ctx.settings.occluder_cache;
                         for i in 0..N {
                             // Lanes without a surface to light take no part.

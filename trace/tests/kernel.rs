@@ -253,6 +253,71 @@ fn any_hit_packets_equal_brute_force() {
     );
 }
 
+/// 16-lane shadow packets whose lanes part ways (origins all over the
+/// model) hand their sparse subtrees over to groups of four lanes where
+/// the CPU has AVX-512 ([`Packet::hand_off_sparse_subtrees`]): every lane
+/// still agrees with brute force, and with the same packet traced without
+/// groups. Half the packets aim their lanes at vertices of the model, so
+/// that lanes pass next to shared corners.
+#[test]
+fn shadow_packets_in_groups_equal_brute_force() {
+    let m = plant(20_000);
+    let b = m.db.manifest.model_bounds;
+    let tmin = 1e-4 * b.diagonal();
+    let mut rng = Rng::new(19);
+    let (mut occluded, mut handed_over) = (0, 0);
+    for k in 0..200 {
+        let mut origins = [Vec3::ZERO; 16];
+        let light = Vec3::new(rng.range(-1.0, 1.0), 1.0, rng.range(-1.0, 1.0)).normalize();
+        for o in &mut origins {
+            *o = if k % 2 == 0 {
+                // Below a vertex, towards the light through it.
+                let corner = m.tris[rng.below(m.tris.len() as u32) as usize][rng.below(3) as usize];
+                corner - light * rng.range(0.5, 5.0)
+            } else {
+                Vec3::new(
+                    rng.range(b.min[0], b.max[0]),
+                    rng.range(b.min[1], b.max[1]),
+                    rng.range(b.min[2], b.max[2]),
+                )
+            };
+        }
+        let trace = |groups: bool| {
+            let mut packet = Packet::<16>::new(&origins, &[light; 16], tmin, f32::INFINITY);
+            packet.any_hit = true;
+            if groups {
+                packet.hand_off_sparse_subtrees();
+            }
+            let mut trav = Traversal::<16>::default();
+            assert_eq!(trav.run(&mut packet, &m.top, &m.source), Step::Done);
+            packet
+        };
+        let (grouped, plain) = (trace(true), trace(false));
+        handed_over += grouped.group_searches;
+        for (i, &origin) in origins.iter().enumerate() {
+            let ray = Ray { origin, dir: light };
+            let blocked = blocked_by_brute_force(&m, &ray, tmin);
+            assert_eq!(
+                grouped.occluded(i),
+                blocked,
+                "packet {k} lane {i} of {ray:?}"
+            );
+            assert_eq!(plain.occluded(i), blocked, "packet {k} lane {i} of {ray:?}");
+            occluded += blocked as usize;
+        }
+    }
+    assert!(
+        occluded > 300 && occluded < 3000,
+        "{occluded} of 3200 occluded"
+    );
+    if Isa::detect() == Isa::Avx512 {
+        assert!(
+            handed_over > 1000,
+            "only {handed_over} subtrees handed over"
+        );
+    }
+}
+
 /// A shadow packet that first tries a triangle (`occlude_with`) and is
 /// traversed only if lanes remain still agrees with brute force lane by
 /// lane, whatever the triangle: the occluder of a neighbouring packet
