@@ -172,10 +172,11 @@ impl<const N: usize> Packet<N> {
     /// costs the same for 3 lanes as for 16. Handed over, a node costs a
     /// group one 16-lane box test with no per-node gathering, and a leaf
     /// one triangle test for all its triangles. From outside the plants
-    /// shadow rays were 9-17 % faster (1 M) and 7-14 % (12.5 M); where
-    /// the lanes stay together (inside the plants, the living room, the
-    /// scanned models) few subtrees are handed over, and those views
-    /// were level within the machine's noise (-3 to +1 %).
+    /// shadow rays were 11-13 % faster; inside them level. Where the lanes
+    /// stay together elsewhere, the lane masks of every entered child and
+    /// the groups at the fringes cost the bunny 3-7 %, Igea 4-5 % and the
+    /// living room from inside 3-6 % (README, "Sparse subtrees handed over
+    /// to groups of lanes").
     pub fn hand_off_sparse_subtrees(&mut self) -> bool {
         self.groups = N == 16 && quad::available();
         self.groups
@@ -597,6 +598,12 @@ impl<const N: usize> EntryLanes<N> for AllLanes {
         seg: (&[f32; N], &[f32; N]),
     ) -> Option<(Self, u32)> {
         let (t0, t1) = p.slab_within(min, max, seg.0, seg.1);
+        if N == 16 && p.groups {
+            // Shadow packets, which never count their lanes. SAFETY:
+            // `groups` is set only where the CPU has AVX-512F.
+            let mask = unsafe { lanes_le16(as16(&t0), as16(&t1)) };
+            return (mask != 0).then_some((AllLanes, mask));
+        }
         let mut any = false;
         for i in 0..N {
             any |= t0[i] <= t1[i];
@@ -610,11 +617,6 @@ impl<const N: usize> EntryLanes<N> for AllLanes {
                 lanes += (t0[i] <= t1[i]) as u32;
             }
             p.count_child(lanes);
-        }
-        if N == 16 && p.groups {
-            // SAFETY: `groups` is set only where the CPU has AVX-512F.
-            let mask = unsafe { lanes_le16(as16(&t0), as16(&t1)) };
-            return Some((AllLanes, mask));
         }
         Some((AllLanes, u32::MAX))
     }
