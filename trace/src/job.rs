@@ -45,7 +45,8 @@ pub(crate) struct Ctx<'a> {
     pub quad: bool,
     /// Whether 16-lane shadow packets hand sparse subtrees over to groups
     /// of lanes ([`Packet::hand_off_sparse_subtrees`]): where the kernel
-    /// runs its AVX-512 code.
+    /// runs its AVX-512 code (`render` clears it for tiles whose rays stay
+    /// together, [`crate::render::PacketChooser::groups`]).
     pub groups: bool,
 }
 

@@ -172,10 +172,10 @@ impl<const N: usize> Packet<N> {
     /// costs the same for 3 lanes as for 16. Handed over, a node costs a
     /// group one 16-lane box test with no per-node gathering, and a leaf
     /// one triangle test for all its triangles. From outside the plants
-    /// shadow rays were 11-13 % faster; inside them level. Where the lanes
-    /// stay together elsewhere, the lane masks of every entered child and
-    /// the groups at the fringes cost the bunny 3-7 %, Igea 4-5 % and the
-    /// living room from inside 3-6 % (README, "Sparse subtrees handed over
+    /// shadow rays were 11-13 % faster, inside them level. Where the lanes
+    /// stay together, the lane masks of every entered child and the
+    /// groups at the fringes cost more than they save: `render` turns
+    /// hand-overs off for such tiles (README, "Sparse subtrees handed over
     /// to groups of lanes").
     pub fn hand_off_sparse_subtrees(&mut self) -> bool {
         self.groups = N == 16 && quad::available();
@@ -353,17 +353,21 @@ impl<const N: usize> Packet<N> {
         // Sparse packets (16 lanes, AVX-512 and BMI2) keep each entry's
         // lanes; the others search without them, in code of their own:
         // keeping the lanes made every other packet 5-10 % slower.
-        if N == 16 && self.quad {
-            self.search::<S, LaneMask>(shear, vox, seg)
-        } else {
-            self.search::<S, AllLanes>(shear, vox, seg)
+        // Shadow packets that hand subtrees over search in code of their
+        // own too: the hand-over's tests in the other packets' search made
+        // the bunny's shadows 4 % slower even with groups turned off.
+        match (N == 16 && self.quad, self.groups) {
+            (true, true) => self.search::<S, LaneMask, true>(shear, vox, seg),
+            (true, false) => self.search::<S, LaneMask, false>(shear, vox, seg),
+            (false, true) => self.search::<S, AllLanes, true>(shear, vox, seg),
+            (false, false) => self.search::<S, AllLanes, false>(shear, vox, seg),
         }
     }
 
     /// The search of one voxel's BVH, with `L` the lanes each stack entry
     /// stands for.
     #[inline(always)]
-    fn search<S: TriangleTest<N>, L: EntryLanes<N>>(
+    fn search<S: TriangleTest<N>, L: EntryLanes<N>, const HAND_OFF: bool>(
         &mut self,
         shear: &S,
         vox: &PreparedVoxel,
@@ -411,11 +415,12 @@ impl<const N: usize> Packet<N> {
                 }
                 let min = [bmin[0][c], bmin[1][c], bmin[2][c]];
                 let max = [bmax[0][c], bmax[1][c], bmax[2][c]];
-                let Some((child_lanes, mask)) = L::child(self, lanes, &tested, c, (min, max), seg)
+                let Some((child_lanes, mask)) =
+                    L::child(self, lanes, &tested, c, (min, max), seg, HAND_OFF)
                 else {
                     continue;
                 };
-                if self.hand_off(shear, vox, seg, mask, node.child[c]) {
+                if HAND_OFF && self.hand_off(shear, vox, seg, mask, node.child[c]) {
                     if self.all_blocked() {
                         return;
                     }
@@ -554,8 +559,9 @@ trait EntryLanes<const N: usize>: Copy {
     ) -> Self::Tested;
     /// The lanes of `lanes` that enter child `c` (`min`, `max`), if any,
     /// counted where the packet counts its lanes; with them, a bit for
-    /// each where the packet hands subtrees over to groups (`groups`),
-    /// else `u32::MAX`.
+    /// each where `masks` asks (a shadow packet that hands subtrees over
+    /// to groups), else `u32::MAX`.
+    #[allow(clippy::too_many_arguments)]
     fn child(
         p: &mut Packet<N>,
         lanes: Self,
@@ -563,6 +569,7 @@ trait EntryLanes<const N: usize>: Copy {
         c: usize,
         child: ([f32; 3], [f32; 3]),
         seg: (&[f32; N], &[f32; N]),
+        masks: bool,
     ) -> Option<(Self, u32)>;
 }
 
@@ -596,11 +603,13 @@ impl<const N: usize> EntryLanes<N> for AllLanes {
         _: usize,
         (min, max): ([f32; 3], [f32; 3]),
         seg: (&[f32; N], &[f32; N]),
+        masks: bool,
     ) -> Option<(Self, u32)> {
         let (t0, t1) = p.slab_within(min, max, seg.0, seg.1);
-        if N == 16 && p.groups {
+        if N == 16 && masks {
             // Shadow packets, which never count their lanes. SAFETY:
-            // `groups` is set only where the CPU has AVX-512F.
+            // `masks` only for packets with `groups`, set only where the
+            // CPU has AVX-512F.
             let mask = unsafe { lanes_le16(as16(&t0), as16(&t1)) };
             return (mask != 0).then_some((AllLanes, mask));
         }
@@ -673,6 +682,7 @@ impl<const N: usize> EntryLanes<N> for LaneMask {
         c: usize,
         (min, max): ([f32; 3], [f32; 3]),
         seg: (&[f32; N], &[f32; N]),
+        _: bool,
     ) -> Option<(Self, u32)> {
         let entered = match tested {
             Some(entered) => entered[c],

@@ -150,6 +150,7 @@ pub enum Packets {
 pub struct PacketChooser {
     mode: Packets,
     next: Packets,
+    groups: bool,
 }
 
 impl PacketChooser {
@@ -161,12 +162,21 @@ impl PacketChooser {
                 Packets::Auto => Packets::Narrow,
                 fixed => fixed,
             },
+            groups: true,
         }
     }
 
     /// The packets of the next tile: `Wide`, `Narrow` or `Sparse`.
     pub fn next(&self) -> Packets {
         self.next
+    }
+
+    /// Whether the next tile's shadow packets hand sparse subtrees over
+    /// to groups of lanes: until a tile says its rays stay together
+    /// (below [`GROUPS_BELOW`] lanes a child box), and always under a
+    /// fixed choice of packets.
+    pub fn groups(&self) -> bool {
+        self.groups
     }
 
     /// Learns from a tile traced with [`Self::next`]'s packets, from its
@@ -176,6 +186,7 @@ impl PacketChooser {
             return;
         }
         let lanes = child_lanes as f64 / child_hits as f64;
+        self.groups = lanes < GROUPS_BELOW;
         // A wide tile's figure counts lanes of 32: below STAY_WIDE it goes
         // back to 16 first.
         self.next = match self.next {
@@ -189,6 +200,14 @@ impl PacketChooser {
     }
 }
 
+/// Lanes of 16 entering a child box together below which the next tile's
+/// shadow packets hand sparse subtrees over to groups of lanes
+/// ([`crate::packet::Packet::hand_off_sparse_subtrees`]). Above, where a
+/// tile's rays stay together, the packets' search is the one without
+/// hand-overs: with every tile's shadow packets handing over, Igea's
+/// shadows were 5-7 % slower and the bunny's 4-6 %; so, Igea level and
+/// the bunny 2-4 %, the far 1 M plant view as fast (three rounds each).
+const GROUPS_BELOW: f64 = 4.0;
 /// Lanes of 16 entering a child box together from which 32 pay off.
 const GO_WIDE: f64 = 8.0;
 /// Lanes of 32 below which 16 are better again.
@@ -358,7 +377,13 @@ pub fn render(
                         break;
                     }
                     let (tx, ty) = (k as u32 % tiles_x, k as u32 / tiles_x);
-                    match render_tile(&shared, tx * TILE, ty * TILE, chooser.next()) {
+                    match render_tile(
+                        &shared,
+                        tx * TILE,
+                        ty * TILE,
+                        chooser.next(),
+                        chooser.groups(),
+                    ) {
                         Ok(out) => {
                             chooser.learn(out.stats.child_hits, out.stats.child_lanes);
                             merge(&frame, out)
@@ -410,13 +435,19 @@ fn merge(frame: &Mutex<Frame>, out: TileOut) {
     s.sparse_tiles += out.stats.sparse_tiles;
 }
 
-fn render_tile(shared: &Shared, x0: u32, y0: u32, packets: Packets) -> Result<TileOut, u32> {
+fn render_tile(
+    shared: &Shared,
+    x0: u32,
+    y0: u32,
+    packets: Packets,
+    groups: bool,
+) -> Result<TileOut, u32> {
     match shared.settings.isa {
         #[cfg(target_arch = "x86_64")]
         // SAFETY: `render` keeps an ISA only where `Isa::supported` says
         // this CPU has its features.
         Isa::Avx512 if packets == Packets::Wide => {
-            unsafe { tile_avx512::<32, 8>(shared, x0, y0, false) }.map(|mut out| {
+            unsafe { tile_avx512::<32, 8>(shared, x0, y0, false, groups) }.map(|mut out| {
                 out.stats.wide_tiles = 1;
                 out
             })
@@ -424,18 +455,18 @@ fn render_tile(shared: &Shared, x0: u32, y0: u32, packets: Packets) -> Result<Ti
         #[cfg(target_arch = "x86_64")]
         // SAFETY: as above.
         Isa::Avx512 if packets == Packets::Sparse => {
-            unsafe { tile_avx512::<16, 4>(shared, x0, y0, true) }.map(|mut out| {
+            unsafe { tile_avx512::<16, 4>(shared, x0, y0, true, groups) }.map(|mut out| {
                 out.stats.sparse_tiles = 1;
                 out
             })
         }
         #[cfg(target_arch = "x86_64")]
         // SAFETY: as above.
-        Isa::Avx512 => unsafe { tile_avx512::<16, 4>(shared, x0, y0, false) },
+        Isa::Avx512 => unsafe { tile_avx512::<16, 4>(shared, x0, y0, false, groups) },
         #[cfg(target_arch = "x86_64")]
         // SAFETY: as above.
         Isa::Avx2 => unsafe { tile_avx2(shared, x0, y0) },
-        _ => tile::<8, 4>(shared, x0, y0, false),
+        _ => tile::<8, 4>(shared, x0, y0, false, false),
     }
 }
 
@@ -448,14 +479,15 @@ unsafe fn tile_avx512<const N: usize, const BW: u32>(
     x0: u32,
     y0: u32,
     sparse: bool,
+    groups: bool,
 ) -> Result<TileOut, u32> {
-    tile::<N, BW>(shared, x0, y0, sparse)
+    tile::<N, BW>(shared, x0, y0, sparse, groups)
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
 unsafe fn tile_avx2(shared: &Shared, x0: u32, y0: u32) -> Result<TileOut, u32> {
-    tile::<8, 4>(shared, x0, y0, false)
+    tile::<8, 4>(shared, x0, y0, false, false)
 }
 
 /// One tile in packets of N rays from BW-pixel-wide blocks, each run
@@ -468,6 +500,7 @@ fn tile<const N: usize, const BW: u32>(
     x0: u32,
     y0: u32,
     sparse: bool,
+    groups: bool,
 ) -> Result<TileOut, u32> {
     let bh = N as u32 / BW;
     let w = TILE.min(shared.width - x0);
@@ -489,6 +522,7 @@ fn tile<const N: usize, const BW: u32>(
     };
     let mut ctx = Ctx::new(shared.top, shared.basis, settings, false);
     ctx.quad &= sparse;
+    ctx.groups &= groups;
     let rect = Rect {
         x0,
         y0,
@@ -617,6 +651,7 @@ mod tests {
         for (k, (lanes, want)) in steps.into_iter().enumerate() {
             learn(&mut c, lanes);
             assert_eq!(c.next(), want, "step {k}: {lanes} lanes");
+            assert_eq!(c.groups(), lanes < GROUPS_BELOW, "step {k}: {lanes} lanes");
         }
         // Too few sampled boxes (a tile of sky) change nothing.
         c.learn(MIN_CHILD_HITS - 1, 0);
@@ -625,6 +660,7 @@ mod tests {
         for fixed in [Packets::Narrow, Packets::Wide, Packets::Sparse] {
             let mut c = PacketChooser::new(fixed);
             learn(&mut c, 20.0);
+            assert!(c.groups());
             learn(&mut c, 1.0);
             assert_eq!(c.next(), fixed);
         }
