@@ -36,8 +36,11 @@ use glam::Vec3;
 /// Relative widening of every culling interval: slab tests round, and a
 /// box or cell must never be culled because of it.
 const WIDEN: f32 = 1.0 / 65536.0;
-/// Stand-in for a zero direction component in slab tests (never in the
-/// triangle test), so that no NaN reaches the interval arithmetic.
+/// Stand-in for a zero direction component in the reciprocal (never in the
+/// triangle test), so that no NaN reaches the interval arithmetic. Slab
+/// tests do not use it for such a lane: a ray exactly in the plane of a
+/// box's face would exit there at 0 (`0 * 1e30`), before its `tmin`, and
+/// miss a triangle through that face's edge ([`Sign::WithZero`]).
 const TINY: f32 = 1e-30;
 
 /// The sign of one direction component across a packet's lanes.
@@ -48,6 +51,11 @@ enum Sign {
     /// Every lane's reciprocal is negative: the max plane is near.
     Negative,
     Mixed,
+    /// Some lane's component is exactly zero: that lane is inside the slab
+    /// for every `t` or for none, as its origin is. (With light
+    /// `0,1,0`, shadow rays from points exactly on a box's face missed
+    /// triangles through its edge.)
+    WithZero,
 }
 
 /// N rays and what they found.
@@ -126,13 +134,16 @@ impl<const N: usize> Packet<N> {
         let signs = [0, 1, 2].map(|a| {
             let mut positive = true;
             let mut negative = true;
+            let mut zero = false;
             for i in 0..N {
                 positive &= inv[a][i] > 0.0;
                 negative &= inv[a][i] < 0.0;
+                zero |= dir[a][i] == 0.0;
             }
-            match (positive, negative) {
-                (true, _) => Sign::Positive,
-                (_, true) => Sign::Negative,
+            match (zero, positive, negative) {
+                (true, _, _) => Sign::WithZero,
+                (_, true, _) => Sign::Positive,
+                (_, _, true) => Sign::Negative,
                 _ => Sign::Mixed,
             }
         });
@@ -180,6 +191,14 @@ impl<const N: usize> Packet<N> {
     pub fn hand_off_sparse_subtrees(&mut self) -> bool {
         self.groups = N == 16 && quad::available();
         self.groups
+    }
+
+    /// Whether some lane's direction has a component exactly zero: the
+    /// box tests of `crate::quad` and `group`, which do not handle it,
+    /// are left to [`Self::slab_within`].
+    #[inline(always)]
+    fn any_zero_component(&self) -> bool {
+        self.signs.contains(&Sign::WithZero)
     }
 
     /// Whether every lane of a shadow packet is blocked (or was never
@@ -255,6 +274,28 @@ impl<const N: usize> Packet<N> {
                         let near = (min[a] - self.org[a][i]) * self.inv[a][i];
                         let far = (max[a] - self.org[a][i]) * self.inv[a][i];
                         let (lo, hi) = if near < far { (near, far) } else { (far, near) };
+                        t0[i] = if lo > t0[i] { lo } else { t0[i] };
+                        exit[i] = if hi < exit[i] { hi } else { exit[i] };
+                    }
+                    continue;
+                }
+                Sign::WithZero => {
+                    // As `Mixed`, except for lanes without a component on
+                    // this axis: no limit where the origin is in the slab,
+                    // an empty interval where it is not (finite, so that
+                    // widening makes no NaN).
+                    for i in 0..N {
+                        let near = (min[a] - self.org[a][i]) * self.inv[a][i];
+                        let far = (max[a] - self.org[a][i]) * self.inv[a][i];
+                        let (lo, hi) = if near < far { (near, far) } else { (far, near) };
+                        let o = self.org[a][i];
+                        let inside = (min[a] <= o) & (o <= max[a]);
+                        let flat = self.dir[a][i] == 0.0;
+                        let (lo, hi) = match (flat, inside) {
+                            (false, _) => (lo, hi),
+                            (true, true) => (-f32::MAX, f32::MAX),
+                            (true, false) => (f32::MAX, -f32::MAX),
+                        };
                         t0[i] = if lo > t0[i] { lo } else { t0[i] };
                         exit[i] = if hi < exit[i] { hi } else { exit[i] };
                     }
@@ -459,7 +500,13 @@ impl<const N: usize> Packet<N> {
         root: u32,
     ) -> bool {
         #[cfg(target_arch = "x86_64")]
-        if N == 16 && self.groups && self.any_hit && lanes.count_ones() <= 4 && self.tmin >= 0.0 {
+        if N == 16
+            && self.groups
+            && self.any_hit
+            && lanes.count_ones() <= 4
+            && self.tmin >= 0.0
+            && !self.any_zero_component()
+        {
             if let Some(shear) = shear.uniform() {
                 // SAFETY: `groups` is set only where the CPU has AVX-512F
                 // and BMI2; N is 16, so the types are the same.
@@ -657,7 +704,7 @@ impl<const N: usize> EntryLanes<N> for LaneMask {
         (bmin, bmax): (&[[f32; 4]; 3], &[[f32; 4]; 3]),
         seg: (&[f32; N], &[f32; N]),
     ) -> Option<[u32; 4]> {
-        if lanes.0.count_ones() > 4 {
+        if lanes.0.count_ones() > 4 || p.any_zero_component() {
             return None;
         }
         let mut slots = 0;
