@@ -183,7 +183,7 @@ impl<const N: usize> Packet<N> {
     /// costs the same for 3 lanes as for 16. Handed over, a node costs a
     /// group one 16-lane box test with no per-node gathering, and a leaf
     /// one triangle test for all its triangles. From outside the plants
-    /// shadow rays were 11-13 % faster, inside them level. Where the lanes
+    /// shadow rays were 7-16 % faster, inside them level. Where the lanes
     /// stay together, the lane masks of every entered child and the
     /// groups at the fringes cost more than they save: `render` turns
     /// hand-overs off for such tiles (README, "Sparse subtrees handed over
