@@ -194,8 +194,8 @@ impl<const N: usize> Packet<N> {
     }
 
     /// Whether some lane's direction has a component exactly zero: the
-    /// box tests of `crate::quad` and `group`, which do not handle it,
-    /// are left to [`Self::slab_within`].
+    /// box tests of `crate::quad`, which do not handle it, are left to
+    /// [`Self::slab_within`].
     #[inline(always)]
     fn any_zero_component(&self) -> bool {
         self.signs.contains(&Sign::WithZero)
@@ -500,13 +500,7 @@ impl<const N: usize> Packet<N> {
         root: u32,
     ) -> bool {
         #[cfg(target_arch = "x86_64")]
-        if N == 16
-            && self.groups
-            && self.any_hit
-            && lanes.count_ones() <= 4
-            && self.tmin >= 0.0
-            && !self.any_zero_component()
-        {
+        if N == 16 && self.groups && self.any_hit && lanes.count_ones() <= 4 && self.tmin >= 0.0 {
             if let Some(shear) = shear.uniform() {
                 // SAFETY: `groups` is set only where the CPU has AVX-512F
                 // and BMI2; N is 16, so the types are the same.

@@ -66,6 +66,8 @@ pub(super) unsafe fn subtree(
         sx: gather(&shear.sx),
         sy: gather(&shear.sy),
         sz: gather(&shear.sz),
+        flat: [0, 1, 2]
+            .map(|a| _mm512_cmp_ps_mask::<_CMP_EQ_OQ>(gather(&p.dir[a]), _mm512_setzero_ps())),
     };
     let count = group.count_ones();
     let mut lane_of = [0usize; 4];
@@ -135,6 +137,9 @@ struct GroupRays {
     sx: __m512,
     sy: __m512,
     sz: __m512,
+    /// Per axis, the positions whose lane's direction has no component on
+    /// it (a light straight along an axis).
+    flat: [__mmask16; 3],
 }
 
 /// A voxel's frame as vectors: the planes of a node's quanta.
@@ -208,6 +213,17 @@ impl GroupRays {
             let far = _mm512_mul_ps(_mm512_sub_ps(max[a], self.org[a]), self.inv[a]);
             lo[a] = _mm512_min_ps(near, far);
             hi[a] = _mm512_max_ps(far, near);
+            if self.flat[a] != 0 {
+                // `Sign::WithZero`: a lane without a component on this
+                // axis is in the slab for every t, or for none.
+                let inside = _mm512_cmp_ps_mask::<_CMP_LE_OQ>(min[a], self.org[a])
+                    & _mm512_cmp_ps_mask::<_CMP_LE_OQ>(self.org[a], max[a]);
+                let (big, small) = (_mm512_set1_ps(f32::MAX), _mm512_set1_ps(-f32::MAX));
+                let flat_lo = _mm512_mask_blend_ps(inside, big, small);
+                let flat_hi = _mm512_mask_blend_ps(inside, small, big);
+                lo[a] = _mm512_mask_blend_ps(self.flat[a], lo[a], flat_lo);
+                hi[a] = _mm512_mask_blend_ps(self.flat[a], hi[a], flat_hi);
+            }
         }
         // Maxima and minima in pairs (exact in any order). Widening: with
         // W a power of two, t - |t| * W is t * (1 - W) for t >= 0, and
