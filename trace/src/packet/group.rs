@@ -272,7 +272,10 @@ unsafe fn leaf(
     let (first, count) = (first as usize, count as usize);
     debug_assert!((1..=4).contains(&count) && first + count <= vox.corners.len());
     // The leaf's corners, 9 floats a triangle, in three registers; masked
-    // loads read nothing past the last triangle.
+    // loads read nothing past the last triangle. A leaf holds 1-4 of the
+    // voxel's triangles: decoding checks every leaf's range and count
+    // (`Voxel::validate_tree`, `MAX_LEAF_TRIANGLES`), and the wide nodes
+    // are built from those leaves.
     let base = vox.corners.as_ptr().wrapping_add(first) as *const f32;
     let floats = 9 * count;
     let load = |at: usize| {
