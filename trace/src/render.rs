@@ -206,7 +206,7 @@ impl PacketChooser {
 /// tile's rays stay together, the packets' search is the one without
 /// hand-overs: with every tile's shadow packets handing over, Igea's
 /// shadows were 5-7 % slower and the bunny's 4-6 %; so, Igea level and
-/// the bunny 2-4 %, the far 1 M plant view as fast (three rounds each).
+/// the bunny 1-4 %, the far 1 M plant view as fast (three rounds each).
 const GROUPS_BELOW: f64 = 4.0;
 /// Lanes of 16 entering a child box together from which 32 pay off.
 const GO_WIDE: f64 = 8.0;

@@ -253,6 +253,31 @@ fn any_hit_packets_equal_brute_force() {
     );
 }
 
+/// A shadow packet from `origins` along `dir`, traversed to the end, with
+/// sparse subtrees handed over to groups of lanes if `groups` (where the
+/// CPU has what they need).
+fn traced_shadow_packet<const N: usize>(
+    m: &Model,
+    origins: &[Vec3; N],
+    dir: Vec3,
+    tmin: f32,
+    groups: bool,
+) -> Packet<N> {
+    let mut packet = Packet::<N>::new(origins, &[dir; N], tmin, f32::INFINITY);
+    packet.any_hit = true;
+    if groups {
+        packet.hand_off_sparse_subtrees();
+    }
+    let mut trav = Traversal::<N>::default();
+    assert_eq!(trav.run(&mut packet, &m.top, &m.source), Step::Done);
+    packet
+}
+
+/// A corner of a random triangle of the model.
+fn random_vertex(m: &Model, rng: &mut Rng) -> Vec3 {
+    m.tris[rng.below(m.tris.len() as u32) as usize][rng.below(3) as usize]
+}
+
 /// 16-lane shadow packets whose lanes part ways (origins all over the
 /// model) hand their sparse subtrees over to groups of four lanes where
 /// the CPU has AVX-512 ([`Packet::hand_off_sparse_subtrees`]): every lane
@@ -272,8 +297,7 @@ fn shadow_packets_in_groups_equal_brute_force() {
         for o in &mut origins {
             *o = if k % 2 == 0 {
                 // Below a vertex, towards the light through it.
-                let corner = m.tris[rng.below(m.tris.len() as u32) as usize][rng.below(3) as usize];
-                corner - light * rng.range(0.5, 5.0)
+                random_vertex(&m, &mut rng) - light * rng.range(0.5, 5.0)
             } else {
                 Vec3::new(
                     rng.range(b.min[0], b.max[0]),
@@ -282,17 +306,8 @@ fn shadow_packets_in_groups_equal_brute_force() {
                 )
             };
         }
-        let trace = |groups: bool| {
-            let mut packet = Packet::<16>::new(&origins, &[light; 16], tmin, f32::INFINITY);
-            packet.any_hit = true;
-            if groups {
-                packet.hand_off_sparse_subtrees();
-            }
-            let mut trav = Traversal::<16>::default();
-            assert_eq!(trav.run(&mut packet, &m.top, &m.source), Step::Done);
-            packet
-        };
-        let (grouped, plain) = (trace(true), trace(false));
+        let grouped = traced_shadow_packet(&m, &origins, light, tmin, true);
+        let plain = traced_shadow_packet(&m, &origins, light, tmin, false);
         handed_over += grouped.group_searches;
         for (i, &origin) in origins.iter().enumerate() {
             let ray = Ray { origin, dir: light };
@@ -322,7 +337,7 @@ fn shadow_packets_in_groups_equal_brute_force() {
 /// model (a light at `0,1,0`): each lies in the planes x = vertex.x and
 /// z = vertex.z, which are often faces of the boxes around the triangles
 /// through that vertex, and meets those triangles exactly on their shared
-/// corner (the watertight test's exact redo). Every lane agrees with brute
+/// corner (edge functions exactly zero). Every lane agrees with brute
 /// force, in packets of 8 and of 16 (with and without groups).
 #[test]
 fn axis_parallel_shadow_rays_through_vertices_equal_brute_force() {
@@ -334,20 +349,13 @@ fn axis_parallel_shadow_rays_through_vertices_equal_brute_force() {
     for k in 0..150 {
         let mut origins = [Vec3::ZERO; 16];
         for o in &mut origins {
-            let corner = m.tris[rng.below(m.tris.len() as u32) as usize][rng.below(3) as usize];
-            *o = Vec3::new(corner.x, corner.y - rng.range(0.5, 5.0), corner.z);
+            *o = random_vertex(&m, &mut rng) - Vec3::Y * rng.range(0.5, 5.0);
         }
-        let mut p16 = Packet::<16>::new(&origins, &[Vec3::Y; 16], tmin, f32::INFINITY);
-        p16.any_hit = true;
-        let grouped = k % 2 == 0 && p16.hand_off_sparse_subtrees();
-        let mut trav = Traversal::<16>::default();
-        assert_eq!(trav.run(&mut p16, &m.top, &m.source), Step::Done);
+        let grouped = k % 2 == 0;
+        let p16 = traced_shadow_packet(&m, &origins, Vec3::Y, tmin, grouped);
         handed_over += p16.group_searches;
         let eight: [Vec3; 8] = std::array::from_fn(|i| origins[i]);
-        let mut p8 = Packet::<8>::new(&eight, &[Vec3::Y; 8], tmin, f32::INFINITY);
-        p8.any_hit = true;
-        let mut trav = Traversal::<8>::default();
-        assert_eq!(trav.run(&mut p8, &m.top, &m.source), Step::Done);
+        let p8 = traced_shadow_packet(&m, &eight, Vec3::Y, tmin, false);
         for (i, &origin) in origins.iter().enumerate() {
             let ray = Ray {
                 origin,

@@ -16,11 +16,12 @@
 //! triangles are tested in; which blocking triangle a lane records may.
 //!
 //! What a node visit costs here is mostly the path from its load to its
-//! children's lane masks (llvm-mca: about 95 cycles of 160 instructions
+//! children's lane masks (llvm-mca: about 97 cycles of 160 instructions
 //! with every load an L1 hit). Node boxes kept in floats cut that path
 //! (warm caches 1100 → 950 ticks a voxel) but doubled the nodes' memory,
-//! and with cold caches were 12 % slower (1650 → 1850); the box test's last steps take
-//! the shortest exact forms instead (see [`GroupRays::children`]).
+//! and with cold caches were 12 % slower (1650 → 1850); the box test's
+//! last steps take the shortest exact forms instead (see
+//! [`GroupRays::children`]).
 
 use super::{edge_lane, prefetch_children, Packet, Shear, WIDEN};
 use crate::scene::{PreparedVoxel, WideNode};
@@ -305,7 +306,7 @@ unsafe fn leaf(
     let mut u = _mm512_sub_ps(_mm512_mul_ps(cx, by), _mm512_mul_ps(cy, bx));
     let mut v = _mm512_sub_ps(_mm512_mul_ps(ax, cy), _mm512_mul_ps(ay, cx));
     let mut w = _mm512_sub_ps(_mm512_mul_ps(bx, ay), _mm512_mul_ps(by, ax));
-    let det = _mm512_add_ps(_mm512_add_ps(u, v), w);
+    let mut det = _mm512_add_ps(_mm512_add_ps(u, v), w);
     let mut t = _mm512_div_ps(
         _mm512_add_ps(
             _mm512_add_ps(
@@ -323,7 +324,6 @@ unsafe fn leaf(
             | _mm512_cmp_ps_mask::<_CMP_EQ_OQ>(v, zero)
             | _mm512_cmp_ps_mask::<_CMP_EQ_OQ>(w, zero),
     ) & valid;
-    let mut det = det;
     if edge != 0 {
         // The reference's double-precision redo, position by position.
         let store = |x: __m512| {
