@@ -171,8 +171,9 @@ impl PacketChooser {
         self.next
     }
 
-    /// Whether the next tile's shadow packets hand sparse subtrees over
-    /// to groups of lanes: until a tile says its rays stay together
+    /// Whether the next tile's rays are taken to part ways: its shadow
+    /// packets hand sparse subtrees over to groups of lanes, and its
+    /// surfaces are prefetched. Until a tile says its rays stay together
     /// (below [`GROUPS_BELOW`] lanes a child box), and always under a
     /// fixed choice of packets.
     pub fn groups(&self) -> bool {
@@ -465,8 +466,8 @@ fn render_tile(
         Isa::Avx512 => unsafe { tile_avx512::<16, 4>(shared, x0, y0, false, groups) },
         #[cfg(target_arch = "x86_64")]
         // SAFETY: as above.
-        Isa::Avx2 => unsafe { tile_avx2(shared, x0, y0) },
-        _ => tile::<8, 4>(shared, x0, y0, false, false),
+        Isa::Avx2 => unsafe { tile_avx2(shared, x0, y0, groups) },
+        _ => tile::<8, 4>(shared, x0, y0, false, groups),
     }
 }
 
@@ -486,14 +487,18 @@ unsafe fn tile_avx512<const N: usize, const BW: u32>(
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
-unsafe fn tile_avx2(shared: &Shared, x0: u32, y0: u32) -> Result<TileOut, u32> {
-    tile::<8, 4>(shared, x0, y0, false, false)
+unsafe fn tile_avx2(shared: &Shared, x0: u32, y0: u32, groups: bool) -> Result<TileOut, u32> {
+    tile::<8, 4>(shared, x0, y0, false, groups)
 }
 
 /// One tile in packets of N rays from BW-pixel-wide blocks, each run
 /// through the same resumable [`PacketJob`] as [`crate::tile::render_tile`]'s
 /// (here every voxel is resident, so a job never stops before it is done);
-/// `sparse` packets as [`Packets::Sparse`] says.
+/// `sparse` packets as [`Packets::Sparse`] says; `groups` is the packet
+/// chooser's answer whether the tile's rays part ways
+/// ([`PacketChooser::groups`]): where they do, 16-lane shadow packets hand
+/// sparse subtrees over to groups (AVX-512) and the surface stage starts
+/// every hit's reads first ([`Ctx::scattered`]).
 #[inline(always)]
 fn tile<const N: usize, const BW: u32>(
     shared: &Shared,
@@ -523,6 +528,7 @@ fn tile<const N: usize, const BW: u32>(
     let mut ctx = Ctx::new(shared.top, shared.basis, settings, false);
     ctx.quad &= sparse;
     ctx.groups &= groups;
+    ctx.scattered = groups;
     let rect = Rect {
         x0,
         y0,

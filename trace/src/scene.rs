@@ -486,6 +486,23 @@ impl PreparedVoxel {
         }
     }
 
+    /// Starts loading what [`Self::surface`] reads for local triangle
+    /// `tri`: its vertex indices are read now, its corners' normals and
+    /// colors prefetched. A packet's hits are looked up one lane after
+    /// another, and each lookup is a chain of misses (indices, then
+    /// normals and colors) in a voxel that traversal did not read;
+    /// starting every lane's chain first lets them wait on memory together.
+    #[inline(always)]
+    pub fn prefetch_surface(&self, tri: u32) {
+        let Some(&corners) = self.triangles.get(tri as usize) else {
+            return;
+        };
+        for i in corners {
+            prefetch(self.normals.as_ptr().wrapping_add(i as usize) as *const u8);
+            prefetch(self.colors.as_ptr().wrapping_add(i as usize) as *const u8);
+        }
+    }
+
     /// Interpolated unit shading normal and color of local triangle `tri`
     /// at barycentrics (u, v) (weights of corners b and c).
     pub fn surface(&self, tri: u32, u: f32, v: f32) -> (Vec3, [f32; 3]) {
