@@ -484,3 +484,34 @@ fn recorded_working_set_holds_every_hit_voxel() {
     }
     assert!(rec.take().is_empty(), "a prefetch was recorded as an entry");
 }
+
+/// Loading every voxel (on every core) of a database with two corrupt
+/// voxels fails naming the first of them, as one pass in order did, each
+/// time; the intact database loads every voxel, each under its own id.
+#[test]
+fn loading_names_the_first_corrupt_voxel() {
+    let m = plant(20_000);
+    let n = m.db.manifest.voxels.len();
+    assert_eq!(m.source.voxel_count(), n);
+    for id in 0..n as u32 {
+        assert_eq!(m.source.voxel(id).map(|v| v.id), Some(id));
+    }
+    assert!(n > 20, "{n} voxels: too few to load in parallel");
+    let dir = m.db.dir().to_path_buf();
+    let path = dir.join("voxels.dray");
+    let mut bytes = std::fs::read(&path).unwrap();
+    let (first, second) = (n as u32 / 3, n as u32 - 2);
+    for id in [second, first] {
+        let e = &m.db.manifest.voxels[id as usize];
+        bytes[(e.offset + e.compressed_bytes / 2) as usize] ^= 0x5A;
+    }
+    std::fs::write(&path, &bytes).unwrap();
+    let db = dray_scene::db::Database::open(&dir).unwrap();
+    for _ in 0..5 {
+        let err = ResidentSource::load(&db)
+            .err()
+            .expect("corrupt voxels load");
+        let text = err.to_string();
+        assert!(text.contains(&format!("voxel {first}")), "{text}");
+    }
+}
