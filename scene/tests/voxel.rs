@@ -594,6 +594,33 @@ fn garbage_is_rejected() {
     assert!(e.contains("version 9"), "{e}");
 }
 
+/// A thread decodes with one zstd context for all its voxels: a blob whose
+/// compressed frame is damaged (resealed, so that the decompressor itself
+/// sees it) leaves the next good blob on the same thread decoding exactly.
+#[test]
+fn a_failed_decompression_leaves_the_next_voxel_intact() {
+    let (v, blob) = small_blob();
+    let mut r = Rng(5);
+    let mut decompressor_errors = 0;
+    for _ in 0..200 {
+        let mut bad = blob.clone();
+        for _ in 0..4 {
+            let i = HEADER_LEN + r.below((blob.len() - HEADER_LEN) as u64) as usize;
+            bad[i] ^= 1 + r.below(255) as u8;
+        }
+        reseal(&mut bad);
+        // Resealed, damage in the frame's literals can decode to another
+        // well-formed voxel: only the decompressor's own failures count.
+        let failed = matches!(Voxel::decode(&bad), Err(VoxelError::Decompress(_)));
+        decompressor_errors += failed as u32;
+        assert!(Voxel::decode(&blob).expect("the good blob") == v);
+    }
+    assert!(
+        decompressor_errors > 20,
+        "only {decompressor_errors} damaged frames failed in the decompressor"
+    );
+}
+
 /// Edits a valid voxel, re-encodes it (valid checksum) and expects decode to
 /// reject it with a message containing `expect`.
 fn forged(edit: impl FnOnce(&mut Voxel), expect: &str) {

@@ -267,16 +267,15 @@ pub(crate) fn decode(blob: &[u8]) -> Result<Voxel, VoxelError> {
     // payload_len <= raw <= MAX_VOXEL_RAW_BYTES: the allocation is bounded,
     // and zstd refuses to write past the capacity.
     let mut payload = Vec::with_capacity(payload_len as usize);
-    let mut dec = zstd::bulk::Decompressor::new()
-        .map_err(|e| VoxelError::Decompress(format!("cannot create decompressor: {e}")))?;
-    let got = dec
-        .decompress_to_buffer(&blob[HEADER_LEN..], &mut payload)
-        .map_err(|e| {
-            VoxelError::Decompress(format!(
-                "{e} (expected {payload_len} bytes from {} compressed)",
-                blob.len() - HEADER_LEN
-            ))
-        })?;
+    let got = with_decompressor(|dec| {
+        dec.decompress_to_buffer(&blob[HEADER_LEN..], &mut payload)
+            .map_err(|e| {
+                VoxelError::Decompress(format!(
+                    "{e} (expected {payload_len} bytes from {} compressed)",
+                    blob.len() - HEADER_LEN
+                ))
+            })
+    })?;
     if got as u64 != payload_len {
         return Err(VoxelError::Truncated(format!(
             "header says the payload has {payload_len} bytes, it decompresses to {got}"
@@ -358,8 +357,33 @@ pub(crate) fn decode(blob: &[u8]) -> Result<Voxel, VoxelError> {
         triangle_ids,
         bvh,
     };
+    // The structure is checked once: refitting changes only the bounds.
     v.validate_structure()?;
     bvh::refit(&mut v.bvh, &v.triangles, &v.positions);
-    v.validate()?;
+    v.validate_bounds()?;
     Ok(v)
+}
+
+thread_local! {
+    /// This thread's zstd decompression context, made on its first voxel:
+    /// making one for every voxel was 3 % of decoding and preparing it.
+    static DECOMPRESSOR: std::cell::RefCell<Option<zstd::bulk::Decompressor<'static>>> =
+        const { std::cell::RefCell::new(None) };
+}
+
+/// Runs `f` with this thread's decompressor.
+fn with_decompressor<T>(
+    f: impl FnOnce(&mut zstd::bulk::Decompressor<'static>) -> Result<T, VoxelError>,
+) -> Result<T, VoxelError> {
+    DECOMPRESSOR.with(|cell| {
+        let mut slot = cell.borrow_mut();
+        let dec =
+            match &mut *slot {
+                Some(dec) => dec,
+                empty => empty.insert(zstd::bulk::Decompressor::new().map_err(|e| {
+                    VoxelError::Decompress(format!("cannot create decompressor: {e}"))
+                })?),
+            };
+        f(dec)
+    })
 }
