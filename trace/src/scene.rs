@@ -414,7 +414,7 @@ fn widen(bvh: &[BvhNode], frame: &Frame) -> Vec<WideNode> {
     fn children(bvh: &[BvhNode], i: usize) -> [usize; 2] {
         [i + 1, bvh[i].first as usize]
     }
-    fn emit(bvh: &[BvhNode], frame: &Frame, kids: Vec<usize>, out: &mut Vec<WideNode>) -> u32 {
+    fn emit(bvh: &[BvhNode], frame: &Frame, kids: &[usize], out: &mut Vec<WideNode>) -> u32 {
         let me = out.len();
         out.push(WideNode {
             qmin: [[0; 4]; 3],
@@ -433,7 +433,8 @@ fn widen(bvh: &[BvhNode], frame: &Frame) -> Vec<WideNode> {
             child[slot] = if is_leaf(bvh, k) {
                 (bvh[k].count << WideNode::KIND_SHIFT) | bvh[k].first
             } else {
-                emit(bvh, frame, open(bvh, k), out)
+                let (kids, n) = open(bvh, k);
+                emit(bvh, frame, &kids[..n], out)
             };
             for a in 0..3 {
                 min[a][slot] = bvh[k].bounds.min[a];
@@ -450,33 +451,40 @@ fn widen(bvh: &[BvhNode], frame: &Frame) -> Vec<WideNode> {
         node.child[..kids.len()].copy_from_slice(&child[..kids.len()]);
         me as u32
     }
-    /// Up to four descendants of interior node `i` that cover it.
-    fn open(bvh: &[BvhNode], i: usize) -> Vec<usize> {
-        let mut kids = children(bvh, i).to_vec();
-        while kids.len() < 4 {
-            let widest = kids
+    /// Up to four descendants of interior node `i` that cover it, and how
+    /// many (in an array: a `Vec` for each wide node was 5 % of a voxel's
+    /// preparation).
+    fn open(bvh: &[BvhNode], i: usize) -> ([usize; 4], usize) {
+        let [a, b] = children(bvh, i);
+        let (mut kids, mut n) = ([a, b, 0, 0], 2);
+        while n < 4 {
+            let widest = kids[..n]
                 .iter()
                 .enumerate()
                 .filter(|(_, &k)| !is_leaf(bvh, k))
                 .max_by(|a, b| bvh[*a.1].bounds.area().total_cmp(&bvh[*b.1].bounds.area()))
                 .map(|(slot, _)| slot);
             let Some(slot) = widest else { break };
-            let k = kids.swap_remove(slot);
-            kids.extend(children(bvh, k));
+            // The widest makes way for the last (as `Vec::swap_remove`),
+            // and its two children go at the end.
+            let k = kids[slot];
+            kids[slot] = kids[n - 1];
+            kids[n - 1..n + 1].copy_from_slice(&children(bvh, k));
+            n += 1;
         }
-        kids
+        (kids, n)
     }
     let mut out = Vec::new();
     if bvh.is_empty() {
         return out;
     }
     // The root itself is the only child of a one-leaf voxel.
-    let top = if is_leaf(bvh, 0) {
-        vec![0]
+    let (top, n) = if is_leaf(bvh, 0) {
+        ([0; 4], 1)
     } else {
         open(bvh, 0)
     };
-    emit(bvh, frame, top, &mut out);
+    emit(bvh, frame, &top[..n], &mut out);
     out
 }
 
