@@ -350,6 +350,7 @@ proptest! {
         check_against_input(&v, &tris);
         let blob = v.encode(level);
         let d = Voxel::decode(&blob).expect("decode");
+        prop_assert!(d.validate().is_ok(), "{:?}", d.validate());
         prop_assert_eq!(&d, &v);
         prop_assert_eq!(d.bounds, bounds);
         check_against_input(&d, &tris);

@@ -165,7 +165,9 @@ impl Voxel {
     }
 
     /// Parses and checks a blob from untrusted bytes: magic, version,
-    /// checksum, sizes (at most [`MAX_VOXEL_RAW_BYTES`]), then [`validate`].
+    /// checksum, sizes (at most [`MAX_VOXEL_RAW_BYTES`]), then what
+    /// [`validate`] checks (the node bounds, not stored, are recomputed
+    /// and hold by construction).
     ///
     /// [`validate`]: Voxel::validate
     pub fn decode(blob: &[u8]) -> Result<Voxel, VoxelError> {
