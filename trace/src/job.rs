@@ -46,13 +46,13 @@ pub(crate) struct Ctx<'a> {
     /// Whether 16-lane shadow packets hand sparse subtrees over to groups
     /// of lanes ([`Packet::hand_off_sparse_subtrees`]): where the kernel
     /// runs its AVX-512 code (`render` clears it for tiles whose rays stay
-    /// together, [`crate::render::PacketChooser::groups`]).
+    /// together, [`crate::render::PacketChooser::scattered`]).
     pub groups: bool,
     /// Whether the tile's rays part ways, so that their hits lie far
     /// apart in memory: the surface stage then starts every lane's reads
     /// before it shades the first ([`PacketJob::prefetch_surfaces`]).
     /// `render` takes it from its packet chooser
-    /// ([`crate::render::PacketChooser::groups`]); the cluster's tiles
+    /// ([`crate::render::PacketChooser::scattered`]); the cluster's tiles
     /// ([`crate::tile`]), which have none, keep it on.
     pub scattered: bool,
 }

@@ -150,7 +150,7 @@ pub enum Packets {
 pub struct PacketChooser {
     mode: Packets,
     next: Packets,
-    groups: bool,
+    scattered: bool,
 }
 
 impl PacketChooser {
@@ -162,7 +162,7 @@ impl PacketChooser {
                 Packets::Auto => Packets::Narrow,
                 fixed => fixed,
             },
-            groups: true,
+            scattered: true,
         }
     }
 
@@ -174,10 +174,10 @@ impl PacketChooser {
     /// Whether the next tile's rays are taken to part ways: its shadow
     /// packets hand sparse subtrees over to groups of lanes, and its
     /// surfaces are prefetched. Until a tile says its rays stay together
-    /// (below [`GROUPS_BELOW`] lanes a child box), and always under a
+    /// (below [`SCATTERED_BELOW`] lanes a child box), and always under a
     /// fixed choice of packets.
-    pub fn groups(&self) -> bool {
-        self.groups
+    pub fn scattered(&self) -> bool {
+        self.scattered
     }
 
     /// Learns from a tile traced with [`Self::next`]'s packets, from its
@@ -187,7 +187,7 @@ impl PacketChooser {
             return;
         }
         let lanes = child_lanes as f64 / child_hits as f64;
-        self.groups = lanes < GROUPS_BELOW;
+        self.scattered = lanes < SCATTERED_BELOW;
         // A wide tile's figure counts lanes of 32: below STAY_WIDE it goes
         // back to 16 first.
         self.next = match self.next {
@@ -202,13 +202,15 @@ impl PacketChooser {
 }
 
 /// Lanes of 16 entering a child box together below which the next tile's
-/// shadow packets hand sparse subtrees over to groups of lanes
-/// ([`crate::packet::Packet::hand_off_sparse_subtrees`]). Above, where a
+/// rays are taken to part ways: its shadow packets hand sparse subtrees
+/// over to groups of lanes
+/// ([`crate::packet::Packet::hand_off_sparse_subtrees`]) and its surface
+/// stage prefetches every hit first ([`Ctx::scattered`]). Above, where a
 /// tile's rays stay together, the packets' search is the one without
 /// hand-overs: with every tile's shadow packets handing over, Igea's
 /// shadows were 5-7 % slower and the bunny's 4-6 %; so, Igea level and
 /// the bunny 1-4 %, the far 1 M plant view as fast (three rounds each).
-const GROUPS_BELOW: f64 = 4.0;
+const SCATTERED_BELOW: f64 = 4.0;
 /// Lanes of 16 entering a child box together from which 32 pay off.
 const GO_WIDE: f64 = 8.0;
 /// Lanes of 32 below which 16 are better again.
@@ -383,7 +385,7 @@ pub fn render(
                         tx * TILE,
                         ty * TILE,
                         chooser.next(),
-                        chooser.groups(),
+                        chooser.scattered(),
                     ) {
                         Ok(out) => {
                             chooser.learn(out.stats.child_hits, out.stats.child_lanes);
@@ -441,14 +443,14 @@ fn render_tile(
     x0: u32,
     y0: u32,
     packets: Packets,
-    groups: bool,
+    scattered: bool,
 ) -> Result<TileOut, u32> {
     match shared.settings.isa {
         #[cfg(target_arch = "x86_64")]
         // SAFETY: `render` keeps an ISA only where `Isa::supported` says
         // this CPU has its features.
         Isa::Avx512 if packets == Packets::Wide => {
-            unsafe { tile_avx512::<32, 8>(shared, x0, y0, false, groups) }.map(|mut out| {
+            unsafe { tile_avx512::<32, 8>(shared, x0, y0, false, scattered) }.map(|mut out| {
                 out.stats.wide_tiles = 1;
                 out
             })
@@ -456,18 +458,18 @@ fn render_tile(
         #[cfg(target_arch = "x86_64")]
         // SAFETY: as above.
         Isa::Avx512 if packets == Packets::Sparse => {
-            unsafe { tile_avx512::<16, 4>(shared, x0, y0, true, groups) }.map(|mut out| {
+            unsafe { tile_avx512::<16, 4>(shared, x0, y0, true, scattered) }.map(|mut out| {
                 out.stats.sparse_tiles = 1;
                 out
             })
         }
         #[cfg(target_arch = "x86_64")]
         // SAFETY: as above.
-        Isa::Avx512 => unsafe { tile_avx512::<16, 4>(shared, x0, y0, false, groups) },
+        Isa::Avx512 => unsafe { tile_avx512::<16, 4>(shared, x0, y0, false, scattered) },
         #[cfg(target_arch = "x86_64")]
         // SAFETY: as above.
-        Isa::Avx2 => unsafe { tile_avx2(shared, x0, y0, groups) },
-        _ => tile::<8, 4>(shared, x0, y0, false, groups),
+        Isa::Avx2 => unsafe { tile_avx2(shared, x0, y0, scattered) },
+        _ => tile::<8, 4>(shared, x0, y0, false, scattered),
     }
 }
 
@@ -480,23 +482,23 @@ unsafe fn tile_avx512<const N: usize, const BW: u32>(
     x0: u32,
     y0: u32,
     sparse: bool,
-    groups: bool,
+    scattered: bool,
 ) -> Result<TileOut, u32> {
-    tile::<N, BW>(shared, x0, y0, sparse, groups)
+    tile::<N, BW>(shared, x0, y0, sparse, scattered)
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
-unsafe fn tile_avx2(shared: &Shared, x0: u32, y0: u32, groups: bool) -> Result<TileOut, u32> {
-    tile::<8, 4>(shared, x0, y0, false, groups)
+unsafe fn tile_avx2(shared: &Shared, x0: u32, y0: u32, scattered: bool) -> Result<TileOut, u32> {
+    tile::<8, 4>(shared, x0, y0, false, scattered)
 }
 
 /// One tile in packets of N rays from BW-pixel-wide blocks, each run
 /// through the same resumable [`PacketJob`] as [`crate::tile::render_tile`]'s
 /// (here every voxel is resident, so a job never stops before it is done);
-/// `sparse` packets as [`Packets::Sparse`] says; `groups` is the packet
+/// `sparse` packets as [`Packets::Sparse`] says; `scattered` is the packet
 /// chooser's answer whether the tile's rays part ways
-/// ([`PacketChooser::groups`]): where they do, 16-lane shadow packets hand
+/// ([`PacketChooser::scattered`]): where they do, 16-lane shadow packets hand
 /// sparse subtrees over to groups (AVX-512) and the surface stage starts
 /// every hit's reads first ([`Ctx::scattered`]).
 #[inline(always)]
@@ -505,7 +507,7 @@ fn tile<const N: usize, const BW: u32>(
     x0: u32,
     y0: u32,
     sparse: bool,
-    groups: bool,
+    scattered: bool,
 ) -> Result<TileOut, u32> {
     let bh = N as u32 / BW;
     let w = TILE.min(shared.width - x0);
@@ -527,8 +529,8 @@ fn tile<const N: usize, const BW: u32>(
     };
     let mut ctx = Ctx::new(shared.top, shared.basis, settings, false);
     ctx.quad &= sparse;
-    ctx.groups &= groups;
-    ctx.scattered = groups;
+    ctx.groups &= scattered;
+    ctx.scattered = scattered;
     let rect = Rect {
         x0,
         y0,
@@ -657,7 +659,11 @@ mod tests {
         for (k, (lanes, want)) in steps.into_iter().enumerate() {
             learn(&mut c, lanes);
             assert_eq!(c.next(), want, "step {k}: {lanes} lanes");
-            assert_eq!(c.groups(), lanes < GROUPS_BELOW, "step {k}: {lanes} lanes");
+            assert_eq!(
+                c.scattered(),
+                lanes < SCATTERED_BELOW,
+                "step {k}: {lanes} lanes"
+            );
         }
         // Too few sampled boxes (a tile of sky) change nothing.
         c.learn(MIN_CHILD_HITS - 1, 0);
@@ -666,7 +672,7 @@ mod tests {
         for fixed in [Packets::Narrow, Packets::Wide, Packets::Sparse] {
             let mut c = PacketChooser::new(fixed);
             learn(&mut c, 20.0);
-            assert!(c.groups());
+            assert!(c.scattered());
             learn(&mut c, 1.0);
             assert_eq!(c.next(), fixed);
         }
