@@ -6,7 +6,7 @@
                               [--ply MODEL.ply --eye x,y,z --look x,y,z [--up x,y,z] [--fov 50]]
 
 A is the reference (Embree in scripts/bench-kernel), B the renderer under test.
-The formats are those of DESIGN.md "Conventions" (and of embree-bench's README):
+The formats are those of bench/embree/README.md, "Output formats":
 
 * depth: grey PFM, header "Pf\\n<W> <H>\\n<scale>\\n" (negative scale = little
   endian), W*H float32 with rows from bottom to top, +inf on a miss;
@@ -25,7 +25,7 @@ triangles at the same distance (within 1e-6 relative), it is a tie (overlapping
 coplanar triangles, or a shared edge) and counts as agreement in
 primid_agreement_with_ties_pct (and in the "same primitive" depth figures).
 The PLY must be binary little endian with fixed-size records (scalar vertex
-properties; faces all triangles), like the shared models and generated plants.
+properties; faces all triangles), like the models of tests/data and generated plants.
 
 Standard library only.
 """

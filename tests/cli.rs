@@ -250,3 +250,24 @@ fn certs_init_issues_a_certificate_per_node_of_the_config() {
     assert!(!none.status.success());
     assert!(text(&none).contains("--nodes"), "{}", text(&none));
 }
+
+/// Logs written to a file or a pipe are plain text: no ANSI colour codes,
+/// whatever the level, and `RUST_LOG` still chooses what is logged.
+#[test]
+fn logs_to_a_pipe_have_no_colour_codes() {
+    let dir = tempfile::tempdir().unwrap();
+    let certs = dir.path().join("certs");
+    let out = Command::new(env!("CARGO_BIN_EXE_dray"))
+        .args(["certs", "init", s(&certs), "--nodes", "client-0"])
+        .env("RUST_LOG", "debug")
+        .env_remove("NO_COLOR")
+        .output()
+        .expect("run dray");
+    assert!(out.status.success(), "{}", text(&out));
+    let log = String::from_utf8_lossy(&out.stderr);
+    assert!(log.contains("INFO"), "RUST_LOG=debug logged no info line:\n{log}");
+    assert!(!log.contains('\x1b'), "colour codes in a piped log:\n{log:?}");
+    let quiet = dray(&["certs", "init", s(&dir.path().join("q")), "--nodes", "a"]);
+    assert!(quiet.status.success(), "{}", text(&quiet));
+    assert!(!String::from_utf8_lossy(&quiet.stderr).contains("INFO"));
+}

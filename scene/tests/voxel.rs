@@ -167,7 +167,7 @@ fn cad_mesh(seed: u64, target: usize) -> (Aabb, Vec<Triangle>) {
 fn bunny_piece(max_triangles: usize) -> (Aabb, Vec<Triangle>) {
     let path = concat!(
         env!("CARGO_MANIFEST_DIR"),
-        "/../../shared/models/stanford-bunny.ply.zst"
+        "/../tests/data/stanford-bunny.ply.zst"
     );
     let packed = std::fs::read(path).expect("read bunny");
     let data = zstd::stream::decode_all(&packed[..]).expect("unzstd bunny");

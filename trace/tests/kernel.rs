@@ -3,7 +3,7 @@
 
 mod common;
 
-use common::{cameras, isas, plant, settings, shared_model, Model};
+use common::{cameras, isas, plant, settings, real_model, Model};
 use dray_scene::geometry::{closer, intersect_triangle, Hit, Ray};
 use dray_scene::rng::Rng;
 use dray_trace::camera::Camera;
@@ -89,7 +89,7 @@ fn plant_pixels_equal_brute_force_on_every_isa() {
 
 #[test]
 fn bunny_pixels_equal_brute_force() {
-    let m = shared_model("stanford-bunny");
+    let m = real_model("stanford-bunny");
     let isa = Isa::detect();
     for (k, cam) in cameras(&m, 80, 60).iter().enumerate() {
         let frame = render(&m.top, &m.source, cam, &settings(isa, &m)).unwrap();

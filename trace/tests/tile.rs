@@ -4,7 +4,7 @@
 
 mod common;
 
-use common::{cameras, isas, plant, settings, shared_model, Model};
+use common::{cameras, isas, plant, settings, real_model, Model};
 use dray_scene::rng::Rng;
 use dray_trace::camera::Camera;
 use dray_trace::render::{render, Frame, Isa, Packets, ReflectRule, RenderSettings};
@@ -271,7 +271,7 @@ async fn voxel_colored_tiles_equal_the_frame() {
 
 #[tokio::test]
 async fn bunny_tiles_equal_the_frame() {
-    let m = shared_model("stanford-bunny");
+    let m = real_model("stanford-bunny");
     let loader = Resident(&m.source);
     let isa = Isa::detect();
     for (k, cam) in cameras(&m, 80, 60).iter().enumerate() {

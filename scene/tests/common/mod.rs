@@ -145,26 +145,18 @@ pub fn test_rays(tris: &[[Vec3; 3]], bounds: &Aabb, n: usize, seed: u64) -> Vec<
         .collect()
 }
 
-/// Unpacks `../shared/models/NAME.ply.zst` (beside the repository) into
-/// `dir`. The models are part of the test setup: missing ones fail the test.
+/// The real models shipped with the repository for tests (`tests/data/`,
+/// origins and licences in its `SOURCES.md`).
+pub fn test_data() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/data")
+}
+
+/// Unpacks `tests/data/NAME.ply.zst` into `dir`.
 pub fn unpack_model(name: &str, dir: &Path) -> PathBuf {
-    let src = shared_models()
-        .expect("../shared/models beside the repository")
-        .join(format!("{name}.ply.zst"));
-    assert!(src.exists(), "{} is missing", src.display());
+    let src = test_data().join(format!("{name}.ply.zst"));
     let out = dir.join(format!("{name}.ply"));
-    let input = std::fs::File::open(&src).unwrap();
+    let input = std::fs::File::open(&src).unwrap_or_else(|e| panic!("{}: {e}", src.display()));
     let mut output = std::fs::File::create(&out).unwrap();
     zstd::stream::copy_decode(input, &mut output).unwrap();
     out
-}
-
-pub fn shared_models() -> Option<PathBuf> {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    // scene/ sits in the repository root, and shared/ beside the repository.
-    let candidates = [
-        root.join("../../shared/models"),
-        root.join("../shared/models"),
-    ];
-    candidates.into_iter().find(|p| p.is_dir())
 }

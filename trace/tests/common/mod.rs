@@ -53,10 +53,11 @@ pub fn plant(triangles: u64) -> Model {
     load(&model, dir, 512)
 }
 
-pub fn shared_model(name: &str) -> Model {
+/// A real model shipped in `tests/data/` (origins in its `SOURCES.md`).
+pub fn real_model(name: &str) -> Model {
     let dir = tempfile::tempdir().unwrap();
     let src = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../../shared/models")
+        .join("../tests/data")
         .join(format!("{name}.ply.zst"));
     let out = dir.path().join(format!("{name}.ply"));
     let input = std::fs::File::open(&src).unwrap_or_else(|e| panic!("{}: {e}", src.display()));
