@@ -1,31 +1,27 @@
 //! The process's memory allocator: mimalloc for rendering, the system's
 //! (glibc's) for preprocessing; and where huge pages are used.
 //!
-//! Why mimalloc (Zen 4, A/B against glibc's malloc in the same hour): it
-//! places each voxel's nodes and corners in large segments that it asks
-//! the kernel to back with transparent huge pages, where glibc gives every
-//! voxel array (100–250 KB) a mapping of 4 KiB pages of its own. A far
-//! view's packets wait on node loads spread over 1.4 GB, and fewer TLB
-//! misses and denser placement made `dray render` of the 12.5 M plant from
-//! outside 8–11 % faster (about half of it from the huge pages). Warm
-//! cluster clients (every voxel preloaded) rendered 6–11 % more frames a
-//! second, all of it from the huge pages.
+//! Why mimalloc: it places each voxel's nodes and corners in large
+//! segments that it asks the kernel to back with transparent huge pages,
+//! where glibc gives every voxel array (100–250 KB) a mapping of 4 KiB
+//! pages of its own. A far view's packets wait on node loads spread over
+//! the whole model, so fewer TLB misses and denser placement speed up
+//! `dray render` and warm cluster clients (`scripts/bench-kernel`,
+//! `scripts/bench-cluster efficiency`).
 //!
 //! Huge pages only where the voxels stay put ([`no_huge_pages`]): a client
 //! that streams voxels into its cache frees and allocates all the time,
 //! and mimalloc hands freed memory back to the kernel, so each fresh fault
-//! cleared a whole 2 MiB page. Half a streaming client's time went to
-//! clearing pages (`clear_page_erms`), and the cold walkthrough of the
-//! latency figure took 8.7–15.8 s against 8.4–9.4 with glibc; without huge
-//! pages, 8.1–8.6 s against 8.4–9.1.
+//! would clear a whole 2 MiB page (`clear_page_erms`), making cold
+//! clients slower than with glibc (`scripts/bench-cluster latency`).
 //!
 //! Why not mimalloc for preprocessing: its memory budget (`--memory-mb`)
 //! holds for the whole process, and mimalloc's huge pages (committed
-//! 2 MiB at a time) and delayed return of freed memory took a 600
-//! k-triangle build at 64 MiB to a peak of 134 MiB (38 with glibc); with
-//! both turned off it kept the budget but built the 1 M plant in 1.2–1.5 s
-//! against 1.0. [`use_system`] switches new allocations over before a
-//! build starts; every block goes back to the allocator that made it.
+//! 2 MiB at a time) and delayed return of freed memory overshoot a small
+//! budget several times over; with both turned off it keeps the budget but
+//! builds slower than glibc (`scripts/bench-preprocess`). [`use_system`]
+//! switches new allocations over before a build starts; every block goes
+//! back to the allocator that made it.
 
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::sync::atomic::{AtomicBool, Ordering};

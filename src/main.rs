@@ -198,7 +198,7 @@ struct RenderArgs {
     /// Shaded image (PNG).
     #[arg(long)]
     out: Option<PathBuf>,
-    /// Hit distances as a grey PFM (DESIGN.md's comparison format).
+    /// Hit distances as a grey PFM (docs/design.md's comparison format).
     #[arg(long)]
     depth_out: Option<PathBuf>,
     /// Original triangle ids as raw little-endian u32.
@@ -580,11 +580,9 @@ fn run(cli: Cli) -> Result<ExitCode> {
             if role == Role::Client {
                 // A client decodes voxels on the blocking pool, as many at
                 // once as it has fetches in flight (64 by default): that
-                // many threads on two cores only took turns. One per core
-                // (at least two) preloaded the 12.5 M plant in 11.1-11.5 s
-                // of `dray cluster` against 13.6-15.6 s (four alternating
-                // runs) and flew the cold 10 ms walk in 8.3-8.8 s against
-                // 8.5-10.7.
+                // many threads on two cores only take turns, so one per
+                // core, at least two (`scripts/bench-cluster efficiency`
+                // and `latency`).
                 let cores = std::thread::available_parallelism().map_or(2, |n| n.get());
                 rt.max_blocking_threads(cores.max(2));
             }

@@ -265,8 +265,14 @@ fn logs_to_a_pipe_have_no_colour_codes() {
         .expect("run dray");
     assert!(out.status.success(), "{}", text(&out));
     let log = String::from_utf8_lossy(&out.stderr);
-    assert!(log.contains("INFO"), "RUST_LOG=debug logged no info line:\n{log}");
-    assert!(!log.contains('\x1b'), "colour codes in a piped log:\n{log:?}");
+    assert!(
+        log.contains("INFO"),
+        "RUST_LOG=debug logged no info line:\n{log}"
+    );
+    assert!(
+        !log.contains('\x1b'),
+        "colour codes in a piped log:\n{log:?}"
+    );
     let quiet = dray(&["certs", "init", s(&dir.path().join("q")), "--nodes", "a"]);
     assert!(quiet.status.success(), "{}", text(&quiet));
     assert!(!String::from_utf8_lossy(&quiet.stderr).contains("INFO"));

@@ -1,4 +1,4 @@
-//! dray-actors: the distributed renderer (DESIGN.md, the paper's system).
+//! dray-actors: the distributed renderer (docs/design.md, the paper's system).
 //!
 //! Every actor is an `async fn run_*(mailbox, options)` that talks only
 //! through the [`dray_runtime::Bus`]: the same code runs over QUIC between

@@ -129,7 +129,7 @@ pub struct SceneConfig {
     pub database: PathBuf,
 }
 
-/// A pinhole camera (DESIGN.md conventions).
+/// A pinhole camera (docs/design.md, "Conventions").
 #[derive(Clone, Copy, Debug, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct CameraConfig {
@@ -377,11 +377,11 @@ pub struct ClientsConfig {
     /// Tiles a client asks for beyond those its threads are rendering, so
     /// it never idles waiting for the scheduler: at first, and at least.
     /// One (the default) is enough where a tile takes longer than a round
-    /// trip to the scheduler; fast tiles
-    /// (primary rays in 32-pixel tiles take about 0.13 ms on one core)
-    /// need 16 to 32, which the client finds by itself (up to
-    /// `max_tiles_ahead`). Finished tiles leave in batches of half the
-    /// tiles asked ahead (README, Efficiency).
+    /// trip to the scheduler; fast tiles (primary rays in 32-pixel tiles
+    /// take a fraction of a millisecond) need 16 to 32, which the client
+    /// finds by itself (up to `max_tiles_ahead`). Finished tiles leave in
+    /// batches of half the tiles asked ahead
+    /// (`scripts/bench-cluster efficiency`).
     #[serde(default = "default_tiles_ahead")]
     pub tiles_ahead: u32,
     /// Most tiles a client asks for ahead. Above `tiles_ahead`, a client
@@ -401,10 +401,9 @@ pub struct ClientsConfig {
     pub preload: bool,
     /// How finished tiles' pixels are compressed (where that makes them
     /// smaller) on their way to the display: `"lz4"` (the default: the
-    /// least CPU, about 7 times fewer bytes on the plant), `"zstd"` (its
-    /// fastest level: a fifth fewer bytes than LZ4 for about 1.4 times its
-    /// CPU, for slow links) or `"none"` (more CPU than LZ4 even over
-    /// loopback: more packets).
+    /// least CPU, several times fewer bytes), `"zstd"` (its fastest level:
+    /// about a fifth fewer bytes than LZ4 for more CPU, for slow links) or
+    /// `"none"` (more CPU than LZ4 even over loopback: more packets).
     #[serde(default)]
     pub pixel_compression: Compression,
     /// Host the clients bind (they dial out; the port is picked).

@@ -189,7 +189,7 @@ pub fn peek_kind(body: &[u8]) -> Result<MessageKind, ProtocolError> {
 pub const ENVELOPE_SLACK: usize = 256;
 
 /// postcard's output in a vector allocated once at about the encoded size:
-/// grown from empty, a tile's pixels were copied several times over.
+/// grown from empty, it would copy a tile's pixels several times over.
 struct Presized(Vec<u8>);
 
 impl postcard::ser_flavors::Flavor for Presized {

@@ -27,7 +27,7 @@ impl TileRect {
     }
 }
 
-/// A pinhole camera (DESIGN.md conventions): vertical field of view in degrees.
+/// A pinhole camera (docs/design.md, "Conventions"): vertical field of view in degrees.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Camera {
     /// Eye position.
@@ -396,7 +396,7 @@ pub enum Message {
     RequestWork(RequestWork),
     /// Scheduler → client.
     AssignTile(AssignTile),
-    /// Client → scheduler (or display).
+    /// Client → display (the pixels; the display reports the tile on).
     TileDone(TileDone),
     /// Client → store.
     FetchVoxel(FetchVoxel),
@@ -404,7 +404,7 @@ pub enum Message {
     VoxelLoaded(VoxelLoaded),
     /// Store → client.
     VoxelError(VoxelError),
-    /// Display → scheduler.
+    /// Display → frame assigner, which passes a copy to the prefetcher.
     CameraUpdate(CameraUpdate),
     /// Scheduler → display.
     FrameDone(FrameDone),
@@ -420,7 +420,8 @@ pub enum Message {
     FetchManifest(FetchManifest),
     /// Store → client or prefetcher.
     ManifestData(ManifestData),
-    /// Client → scheduler.
+    /// Display → scheduler, once the tile's pixels are on the display (the
+    /// scheduler also takes a client's report on its own tile).
     TileReport(TileReport),
     /// Frame assigner → scheduler.
     FrameStart(FrameStart),

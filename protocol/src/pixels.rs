@@ -7,8 +7,7 @@
 //! opaque tile goes as three bytes a pixel, or, as the client is asked
 //! to ([`Compression`]), as those bytes compressed with LZ4 or zstd's
 //! fastest level (a rendered image has flat background and smooth
-//! shading: a frame of the plant's default view, in the clients' blocks,
-//! shrinks 6.9 times with LZ4, 8.9 with zstd); only a tile with some
+//! shading, which both compress several times); only a tile with some
 //! alpha below 255 goes as four bytes a pixel.
 
 use crate::bounded::Blob;
@@ -23,17 +22,12 @@ const ZSTD_LEVEL: i32 = 1;
 
 /// How a client compresses the opaque tiles it sends (`clients.pixel_compression`).
 ///
-/// On one frame of the 12.5 M plant's default view, 921,600 bytes of RGB
-/// in the clients' 128-pixel blocks, one core of the development machine:
-/// LZ4 shrinks it 6.9 times, encoding (RGB packing included) in 0.59 ms
-/// and decoding into the display's frame in 0.55 ms; zstd's fastest level
-/// 8.9 times, in 0.89 and 0.73 ms. Where the nodes share cores, the CPU
-/// is what counts: with LZ4 the clients' actor threads and the display
-/// took 0.04 cores less than with zstd at 39 fps, and the cluster ran
-/// 2.4 % faster (README, Efficiency). Uncompressed costs more CPU than
-/// either even over loopback (every packet is syscalls, encryption and
-/// acknowledgements). zstd's fifth fewer bytes are for links slower than
-/// about 30 Mbit/s a client.
+/// LZ4 by default: zstd's fastest level makes about a fifth fewer bytes
+/// but costs more CPU on both ends, and where the nodes share cores the
+/// CPU is what counts. Uncompressed costs more CPU than either even over
+/// loopback (every packet is syscalls, encryption and acknowledgements).
+/// zstd's fewer bytes are for slow links (a few tens of Mbit/s a client).
+/// Measured by `scripts/bench-cluster efficiency` and `links`.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Compression {
@@ -96,8 +90,8 @@ impl fmt::Debug for TilePixels {
 
 /// What a thread keeps from one tile it encodes to the next: fresh
 /// buffers (the RGB, the compressor's output at its worst-case size, LZ4's
-/// hash table) took about 7 % of a client's actor thread, mostly in
-/// allocating and zeroing them.
+/// hash table) would be allocated and zeroed on a client's actor thread
+/// for every tile.
 #[derive(Default)]
 struct Scratch {
     rgb: Vec<u8>,
@@ -302,7 +296,7 @@ impl TilePixels {
 fn pack_rgb(rgba: &[[u8; 4]], out: &mut Vec<u8>) -> bool {
     out.resize(rgba.len() * 3, 0);
     // Four pixels at a time as three words, alpha ANDed along without a
-    // branch: a fifth faster than a pixel at a time.
+    // branch: faster than a pixel at a time.
     let (quads, rest) = rgba.as_chunks::<4>();
     let (words, tail) = out.as_chunks_mut::<12>();
     let mut alpha = 255u8;
@@ -322,8 +316,8 @@ fn pack_rgb(rgba: &[[u8; 4]], out: &mut Vec<u8>) -> bool {
 
 /// Writes the RGB pixels `rgb` into `out` as opaque RGBA.
 fn expand_rgb(rgb: &[u8], out: &mut [[u8; 4]]) {
-    // Three words into four pixels at a time: a fifth to a third faster than a pixel
-    // at a time (the display's largest cost with the decompression).
+    // Three words into four pixels at a time, faster than a pixel at a time:
+    // this and the decompression are the display's largest costs.
     let (words, tail) = rgb.as_chunks::<12>();
     let (quads, rest) = out.as_chunks_mut::<4>();
     const ALPHA: u32 = 0xff00_0000;

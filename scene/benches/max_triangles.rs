@@ -4,7 +4,7 @@
 //!
 //! `cargo bench -p dray-scene --bench max_triangles` generates a plant
 //! (`DRAY_BENCH_TRIANGLES`, default 1 M) in a temporary directory,
-//! preprocesses it with each limit, and traces primary rays (DESIGN.md's
+//! preprocesses it with each limit, and traces primary rays (docs/design.md's
 //! camera, 256×192, the generator's suggested views from outside to deep
 //! inside) with the reference two-level traversal on one thread, every
 //! voxel resident. The real kernel (dray-trace) is much faster; the ratios

@@ -1,7 +1,7 @@
 //! dray-scene: everything about a model before it is rendered.
 //!
 //! - [`import`]: streaming PLY and OBJ readers that turn model files into
-//!   [`Triangle`]s with their original ids (DESIGN.md, "Conventions").
+//!   [`Triangle`]s with their original ids (docs/design.md, "Conventions").
 //! - [`generate`]: the deterministic synthetic power plant.
 //! - [`preprocess`]: the out-of-core build of the high-level BSP and voxels.
 //! - [`voxel`]: one voxel: its triangles, its low-level BVH, its codec.

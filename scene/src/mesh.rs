@@ -17,7 +17,7 @@ pub struct Triangle {
     pub normals: [Vec3; 3],
     /// RGBA per corner; alpha is always 255 for now.
     pub colors: [[u8; 4]; 3],
-    /// Index of the triangle in the ORIGINAL input (DESIGN.md, "Conventions").
+    /// Index of the triangle in the ORIGINAL input (docs/design.md, "Conventions").
     pub id: u32,
 }
 

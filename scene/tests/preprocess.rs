@@ -147,7 +147,7 @@ proptest! {
 }
 
 /// The quality target at the default voxel size: replication under
-/// 1.3 on the plant (small voxels replicate more, see the README's table).
+/// 1.3 on the plant (small voxels replicate more, docs/benchmarks.md has the table).
 #[test]
 fn default_settings_replicate_little() {
     let dir = tempfile::tempdir().unwrap();

@@ -1,4 +1,4 @@
-//! The pinhole camera of DESIGN.md's convention, in f32 exactly as the
+//! The pinhole camera of docs/design.md's conventions, in f32 exactly as the
 //! comparison tools compute it.
 
 use dray_scene::{Aabb, Ray};

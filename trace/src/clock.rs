@@ -1,7 +1,7 @@
 //! A cheap clock for timing short stretches of kernel work (one shadow
 //! packet, a few hundred nanoseconds): two calls of `Instant::now` per
-//! packet cost about 5 % of the shadow rays' own time in profiles, while
-//! the processor's invariant time-stamp counter costs a few cycles.
+//! packet are a noticeable share of the shadow rays' own time, while the
+//! processor's invariant time-stamp counter costs a few cycles.
 //! Ticks become seconds by comparing with `Instant` over a longer stretch
 //! ([`Calibration`]).
 

@@ -1,4 +1,4 @@
-//! Image files: PNG for people, and the comparison formats of DESIGN.md:
+//! Image files: PNG for people, and the comparison formats of docs/design.md:
 //! depth as a grey PFM (rows bottom to top, +inf on a miss) and primitive
 //! ids as raw little-endian u32 (rows top to bottom, 0xFFFFFFFF on a miss).
 //! Every file is written to a temporary name and renamed into place.

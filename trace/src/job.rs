@@ -125,11 +125,8 @@ enum Stage {
 }
 
 /// How many of the last distinct occluders a job's shadow packets try
-/// first. Four against one (shadow Mrays/s, two rounds each, with the
-/// occluder cache): the living room from inside 299 and 320 → 350 and
-/// 346, inside the 12.5 M plant 37.1 and 33.5 → 38.1 and 36.1 (whole
-/// packets blocked: 3539 → 3924 and 1854 → 3283 of 12192 and 9595); the
-/// other views level, within the machine's noise.
+/// first: several rather than one block more whole packets from inside a
+/// model and cost nothing measurable elsewhere (`scripts/bench-kernel`).
 const OCCLUDERS: usize = 4;
 
 /// One packet of N rays from a BW-pixel-wide block, through every stage.
@@ -280,9 +277,8 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
                     self.lane = 0;
                     // A block whose rays all left the model has no
                     // surface to light: no shadow packet at all. (From
-                    // afar most blocks are sky; building, trying and
-                    // timing empty packets cost shaded frames from
-                    // outside 1-5 %.)
+                    // afar most blocks are sky, and building, trying and
+                    // timing empty packets is not free.)
                     let lit_surfaces = self.weight.iter().any(|&w| w > 0.0);
                     if ctx.settings.shadows && lit_surfaces {
                         self.packet =
@@ -311,10 +307,9 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
 
     /// Blocks the shadow packet's lanes that the last occluders block;
     /// whether that blocked every lane. A try that blocks nothing costs
-    /// about one triangle test an occluder. Resting a few packets after
-    /// such a try made the views where it seldom blocks anything no faster,
-    /// and the living room slower (61 and 48 Mrays/s for one and three
-    /// packets' rest, against 69).
+    /// about one triangle test an occluder, so every packet tries: resting
+    /// a few packets after a try that blocks nothing gains nothing where it
+    /// seldom blocks and loses where it often does (`scripts/bench-kernel`).
     #[inline(always)]
     fn try_last_occluders(&mut self) -> bool {
         for o in self.last_occluders.iter().flatten() {
@@ -329,7 +324,7 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
     /// packet just traced, for the next ones to try first, in place of the
     /// oldest kept (unless it is kept already). Looked up here,
     /// once a packet, rather than recorded in the traversal's leaves: that
-    /// slowed every packet's triangle loop, primary ones too.
+    /// would slow every packet's triangle loop, primary ones too.
     #[inline(always)]
     fn remember_occluder(&mut self, source: &dyn VoxelSource) {
         let p = &self.packet;
@@ -457,10 +452,8 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
     /// after another, each hit waits on a chain of misses of its own (its
     /// vertex indices, then their normals and colors, in arrays that
     /// traversal did not read); started together, they wait together.
-    /// From outside the 1 M plant the surface stage took 500-570 ticks a
-    /// packet instead of 950-1050; where rays stay together their hits
-    /// are mostly cached, and the extra pass only cost (inside the 12.5 M
-    /// plant +15-40 %), hence [`Ctx::scattered`].
+    /// Where rays stay together their hits are mostly cached and the extra
+    /// pass only costs, hence [`Ctx::scattered`] (`scripts/bench-kernel`).
     #[inline(always)]
     fn prefetch_surfaces(&self, source: &dyn VoxelSource) {
         let cur = &self.cur;

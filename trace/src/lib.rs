@@ -1,6 +1,6 @@
 //! dray-trace: the ray tracing kernel.
 //!
-//! - [`camera`]: DESIGN.md's pinhole camera.
+//! - [`camera`]: the pinhole camera of docs/design.md.
 //! - [`scene`]: the high-level BSP and voxels in the kernel's layout, and the
 //!   [`scene::VoxelSource`] the kernel asks for voxels.
 //! - [`packet`]: SIMD ray packets and the suspendable two-level traversal.

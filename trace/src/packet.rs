@@ -61,8 +61,8 @@ enum Sign {
 /// N rays and what they found.
 ///
 /// Aligned to cache lines, so that each lane array of a 16-lane packet
-/// is one AVX-512 register's load, never split across two lines: primary
-/// rays 1-11 % faster than unaligned (Igea the most).
+/// is one AVX-512 register's load, never split across two lines (measured
+/// by `scripts/bench-kernel`).
 #[derive(Clone, Debug)]
 #[repr(align(64))]
 pub struct Packet<const N: usize> {
@@ -90,7 +90,7 @@ pub struct Packet<const N: usize> {
     /// Whether to count, at every child box of the voxels' BVHs that some
     /// lane enters, how many do (`child_hits`, `child_lanes`): how
     /// coherent the packet is ([`crate::render::PacketChooser`]). Counting
-    /// costs 2–9 %, so only a sample of the packets does it.
+    /// is not free, so only a sample of the packets does it.
     pub count_lanes: bool,
     pub child_hits: u32,
     pub child_lanes: u32,
@@ -179,16 +179,13 @@ impl<const N: usize> Packet<N> {
     /// same either way.
     ///
     /// Far from the model a shadow packet's lanes part ways inside each
-    /// voxel: from outside the 1 M plant 8.7 lanes enter a voxel and 2.75
-    /// a child box below its root, and a node visit of the whole packet
-    /// costs the same for 3 lanes as for 16. Handed over, a node costs a
-    /// group one 16-lane box test with no per-node gathering, and a leaf
-    /// one triangle test for all its triangles. From outside the plants
-    /// shadow rays were 7-16 % faster, inside them level. Where the lanes
-    /// stay together, the lane masks of every entered child and the
-    /// groups at the fringes cost more than they save: `render` turns
-    /// hand-overs off for such tiles (README, "Sparse subtrees handed over
-    /// to groups of lanes").
+    /// voxel, and a node visit of the whole packet costs the same for 3
+    /// lanes as for 16. Handed over, a node costs a group one 16-lane box
+    /// test with no per-node gathering, and a leaf one triangle test for
+    /// all its triangles. Where the lanes stay together, the lane masks of
+    /// every entered child and the groups at the fringes cost more than
+    /// they save: `render` turns hand-overs off for such tiles (measured
+    /// by `scripts/bench-kernel`).
     pub fn hand_off_sparse_subtrees(&mut self) -> bool {
         self.groups = N == 16 && quad::available();
         self.groups
@@ -393,11 +390,11 @@ impl<const N: usize> Packet<N> {
             }
         }
         // Sparse packets (16 lanes, AVX-512 and BMI2) keep each entry's
-        // lanes; the others search without them, in code of their own:
-        // keeping the lanes made every other packet 5-10 % slower.
-        // Shadow packets that hand subtrees over search in code of their
-        // own too: the hand-over's tests in the other packets' search made
-        // the bunny's shadows 4 % slower even with groups turned off.
+        // lanes; the others search without them, in code of their own, as
+        // keeping the lanes slows every other packet down. Shadow packets
+        // that hand subtrees over have code of their own too, so that the
+        // hand-over's tests cost the other packets nothing
+        // (`scripts/bench-kernel`).
         match (N == 16 && self.quad, self.groups) {
             (true, true) => self.search::<S, LaneMask, true>(shear, vox, seg),
             (true, false) => self.search::<S, LaneMask, false>(shear, vox, seg),
@@ -422,8 +419,8 @@ impl<const N: usize> Packet<N> {
         let mut stack = [std::mem::MaybeUninit::<(u32, L)>::uninit(); 260];
         let mut top = 0usize;
         // The entry to visit next without a trip through the stack: the
-        // nearest child a node pushes would be popped at once, and the
-        // store and load were on the path from one node load to the next.
+        // nearest child a node pushes would be popped at once, and the store
+        // and load would sit on the path from one node load to the next.
         let mut next = (0u32, L::root(self, seg));
         let dir0 = [self.dir[0][0], self.dir[1][0], self.dir[2][0]];
         loop {
@@ -754,21 +751,20 @@ const NONE: u32 = u32::MAX;
 
 /// Starts loading every child of `node` before the box tests decide which
 /// are needed: these dependent loads are a large part of the traversal's
-/// time (about a third on far views), and the box tests hide part of their
-/// latency. Prefetching only the children that were hit, once sorted, was
-/// 15-20 % slower on far views, where the nearest child is visited at
-/// once.
+/// time on far views, and the box tests hide part of their latency.
+/// Prefetching only the children that were hit, once sorted, comes too
+/// late on far views, where the nearest child is visited at once.
 ///
 /// An interior child: its node and the two after it (in depth-first order
-/// its first child and grandchild; +1.5 % on the far 12.5 M plant view). A
-/// leaf: its corners (4 triangles span 144 bytes, three lines, or four
-/// where they start in a line's last 16 bytes) and its ids. Packets of up
-/// to 16 lanes, the incoherent ones, do it without branches: when each
-/// node is visited once, which children are leaves is data the branch
-/// predictor cannot learn (far views +2-4 %; 32-lane packets were 4 %
-/// slower so). An interior child's line is then asked for twice, and an
-/// empty slot prefetches the voxel's first corners. (Prefetches never
-/// fault: `wrapping_add` of any index is fine.)
+/// its first child and grandchild). A leaf: its corners (4 triangles span
+/// 144 bytes, three lines, or four where they start in a line's last 16
+/// bytes) and its ids. Packets of up to 16 lanes, the incoherent ones, do
+/// it without branches: when each node is visited once, which children
+/// are leaves is data the branch predictor cannot learn (32-lane packets,
+/// the coherent ones, branch). An interior child's line is then asked for
+/// twice, and an empty slot prefetches the voxel's first corners.
+/// (Prefetches never fault: `wrapping_add` of any index is fine.) Measured
+/// by `scripts/bench-kernel`.
 #[inline(always)]
 fn prefetch_children<const N: usize>(vox: &PreparedVoxel, node: &WideNode) {
     for c in 0..4 {
@@ -816,11 +812,9 @@ fn dequantize(vox: &PreparedVoxel, node: &WideNode) -> ([[f32; 4]; 3], [[f32; 4]
 /// Far first, so that the nearest is popped next: an insertion sort by the
 /// key (a library sort of four costs more than the node's box tests). A
 /// shadow packet needs any hit, not the nearest: its children stay in their
-/// stored order, the last popped first. Sorting them near first made shadow
-/// rays 1-13 % slower (the living room and the scanned models the most),
-/// and the largest box first fell in between (likely because a shadow ray
-/// starts on a surface: the nearest boxes hold that surface, which cannot
-/// block it).
+/// stored order, the last popped first: a shadow ray starts on a surface,
+/// and the nearest boxes hold that surface, which cannot block it (near
+/// first and largest first are both slower in `scripts/bench-kernel`).
 #[inline(always)]
 fn sort_far_first<T: Copy>(hits: &mut [(f32, T)]) {
     for j in 1..hits.len() {
@@ -1202,7 +1196,7 @@ impl<const N: usize> Traversal<N> {
                 } => {
                     // A child that is a voxel: its first nodes start
                     // loading now, while the packet tests the boxes
-                    // before it (far 12.5 M plant view +1-2 %).
+                    // before it.
                     for child in [left, right] {
                         if let TopNode::Leaf { voxel: Some(id) } = top.nodes[child as usize] {
                             source.prefetch(id);
@@ -1213,11 +1207,8 @@ impl<const N: usize> Traversal<N> {
                     // far child first instead: it starts on a surface, and
                     // what blocks it is more often what encloses it (a
                     // ceiling, a wall, the far side of a closed object)
-                    // than the clutter around where it starts. Living-room
-                    // shadows from inside 27 → 175 Mrays/s traversed alone
-                    // (55 → 300 with the occluder cache), Igea +18 %, the
-                    // bunny +5 %, the 1 M plant +2-3 %, inside the 12.5 M
-                    // plant -1 to -3 %.
+                    // than the clutter around where it starts (measured by
+                    // `scripts/bench-kernel`, the living room the most).
                     let left_first = packet.dir[axis as usize][0] >= 0.0;
                     if left_first != packet.any_hit {
                         self.stack.push(right);

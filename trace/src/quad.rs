@@ -2,13 +2,12 @@
 //! a node's four children tested at once for up to four lanes.
 //!
 //! Far from the model most of a packet's lanes part ways: from outside the
-//! plants a child box that some lane enters is entered by 2-3 of the
-//! 16 (shadow rays from outside the 1 M plant: 2.3). Testing a node's four
-//! children one after another costs four 16-lane slab tests whatever the
-//! number of lanes; with at most four lanes left, one 16-lane vector holds
-//! every (lane, child) pair instead: position `4 * r + c` is the r-th live
-//! lane against child c. The arithmetic of each pair is the packet's, so
-//! the same boxes are entered.
+//! plants a child box that some lane enters is entered by only a few of
+//! the 16. Testing a node's four children one after another costs four
+//! 16-lane slab tests whatever the number of lanes; with at most four
+//! lanes left, one 16-lane vector holds every (lane, child) pair instead:
+//! position `4 * r + c` is the r-th live lane against child c. The
+//! arithmetic of each pair is the packet's, so the same boxes are entered.
 //!
 //! The lane masks need the comparison's mask register as an integer,
 //! which LLVM builds bit by bit from a comparison of lane arrays; the

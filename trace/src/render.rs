@@ -115,11 +115,11 @@ pub struct RenderSettings {
 
 /// Rays per packet on AVX-512: 16 (4×4 pixels) or 32 (8×4), and how 16
 /// are traced. Wide packets pay off where the rays of a block stay
-/// together (inside the plants: 15–32 % faster), narrow ones where they
-/// part (a whole plant seen from afar: wide packets 5–9 % slower, Igea
-/// 5 %), and sparse ones where they part most: a node that at most four
-/// of the 16 lanes enter tests its four children for them at once
-/// (`crate::quad`). Other ISAs always use 8.
+/// together (inside the plants), narrow ones where they part (a whole
+/// plant seen from afar), and sparse ones where they part most: a node
+/// that at most four of the 16 lanes enter tests its four children for
+/// them at once (`crate::quad`). Other ISAs always use 8. Measured by
+/// `scripts/bench-kernel`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Packets {
     /// Chosen per tile from the tiles the same thread traced before
@@ -132,20 +132,16 @@ pub enum Packets {
     Wide,
     /// Always 16, each stack entry with the lanes that entered its box,
     /// and nodes that at most four lanes entered tested four lanes at a
-    /// time. Keeping the lanes costs up to 7 % where many enter each box
-    /// (inside the 1 M plant); from outside the 12.5 M plant, where two
-    /// do, sparse packets trace primary rays 3 % faster than narrow ones
-    /// and shadow rays 9 %.
+    /// time. Keeping the lanes costs where many enter each box (inside the
+    /// plants) and pays where few do (a plant seen from outside).
     Sparse,
 }
 
 /// Picks the packets of a thread's next tile from the tiles it traced
 /// before: how many lanes of a primary packet enter each BVH child box
-/// that some lane enters (measured on a sample of the packets). With 16
-/// lanes: 15.0 and 9.4 inside the 12.5 M and 1 M plants, where 32 lanes
-/// are 32 % and 15 % faster; 7.4 in the living room (no difference); 5.3 on
-/// Igea and 2–3 on the far plant views (32 lanes slower, sparse 16 lanes
-/// faster). With 32 lanes: 28.9, 14.5, 9.9, 6.6 and 2–4.
+/// that some lane enters (measured on a sample of the packets): where many
+/// do 32 lanes are faster, where few do sparse 16 lanes are. The
+/// thresholds below are set from `scripts/bench-kernel`'s views.
 #[derive(Clone, Copy, Debug)]
 pub struct PacketChooser {
     mode: Packets,
@@ -207,9 +203,7 @@ impl PacketChooser {
 /// ([`crate::packet::Packet::hand_off_sparse_subtrees`]) and its surface
 /// stage prefetches every hit first ([`Ctx::scattered`]). Above, where a
 /// tile's rays stay together, the packets' search is the one without
-/// hand-overs: with every tile's shadow packets handing over, Igea's
-/// shadows were 5-7 % slower and the bunny's 4-6 %; so, Igea level and
-/// the bunny 1-4 %, the far 1 M plant view as fast (three rounds each).
+/// hand-overs, which is faster there (`scripts/bench-kernel`).
 const SCATTERED_BELOW: f64 = 4.0;
 /// Lanes of 16 entering a child box together from which 32 pay off.
 const GO_WIDE: f64 = 8.0;

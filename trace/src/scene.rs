@@ -180,13 +180,12 @@ fn content_boxes(m: &Manifest) -> Vec<Aabb> {
 /// A triangle is stored in every voxel whose cell it reaches, and a voxel
 /// only has to find the hits within its cell: each lane searches it only
 /// within the voxel's content box (which lies in the cell), and a hit
-/// outside is found in the voxel there. The plants' long triangles (a
-/// tenth of the 1 M plant's span 5.8 m or more, in cells of about 13 m)
-/// took a voxel's boxes, and its frame, far out of its cell; clipped (and
-/// with the preprocessor's SAH build binning the clipped bounds too), the
-/// plants' shadow rays were 3-6 % faster, inside the 12.5 M plant 24 %,
-/// and primary rays up to 10 %. A leaf none of whose triangles reaches into
-/// the cell (never built by the preprocessor) keeps its whole box.
+/// outside is found in the voxel there. Unclipped, long triangles (many
+/// in the plants) would take a voxel's boxes, and its frame, far out of
+/// its cell; the preprocessor's SAH build bins the clipped bounds too
+/// (measured by `scripts/bench-kernel`). A leaf none of whose triangles
+/// reaches into the cell (never built by the preprocessor) keeps its whole
+/// box.
 fn clipped_to_cell(v: &Voxel) -> Vec<BvhNode> {
     let mut nodes = v.bvh.clone();
     for i in (0..nodes.len()).rev() {
@@ -220,9 +219,9 @@ fn clipped_to_cell(v: &Voxel) -> Vec<BvhNode> {
 /// packet) in 16-bit fixed point within the voxel's [`Frame`], and for each
 /// child either an interior node index or a leaf's triangle range.
 ///
-/// In floats a node took two lines, and loads from memory are about a third
-/// of a far view's time: in one line the voxels take 15 % less memory and
-/// far views trace a little faster. The boxes are rounded outwards, so a
+/// Quantized rather than in floats (two lines), as loads from memory are a
+/// large part of a far view's time, and the voxels take less memory
+/// (`scripts/bench-kernel`). The boxes are rounded outwards, so a
 /// dequantized box always holds the exact one: rounding costs a few extra
 /// box hits, never a hit.
 #[derive(Clone, Copy, Debug)]
@@ -307,7 +306,8 @@ impl Frame {
     fn floor(&self, axis: usize, x: f32) -> u16 {
         // The estimate is in [0, TOP], so the cast truncates it down: the
         // floor, without a call into libm (baseline x86-64 has no rounding
-        // instruction), which took a tenth of a voxel's preparation.
+        // instruction), which is dear in a voxel's preparation
+        // (`trace/examples/prepare.rs`).
         let mut q = self.estimate(axis, x) as u16;
         while q > 0 && self.plane(axis, q) > x {
             q -= 1;
@@ -452,8 +452,8 @@ fn widen(bvh: &[BvhNode], frame: &Frame) -> Vec<WideNode> {
         me as u32
     }
     /// Up to four descendants of interior node `i` that cover it, and how
-    /// many (in an array: a `Vec` for each wide node was 5 % of a voxel's
-    /// preparation).
+    /// many (in an array: a `Vec` for each wide node would allocate in a
+    /// voxel's preparation, `trace/examples/prepare.rs`).
     fn open(bvh: &[BvhNode], i: usize) -> ([usize; 4], usize) {
         let [a, b] = children(bvh, i);
         let (mut kids, mut n) = ([a, b, 0, 0], 2);
@@ -514,7 +514,7 @@ impl PreparedVoxel {
     /// Starts loading the root node and the two after it (in depth-first
     /// order its first child and grandchild) into the cache: the first
     /// loads of a packet that enters the voxel, which otherwise wait on
-    /// memory with nothing else to do (far views of the 12.5 M plant +1-2 %).
+    /// memory with nothing else to do (far views, `scripts/bench-kernel`).
     #[inline(always)]
     pub fn prefetch_root(&self) {
         let root = self.nodes.as_ptr() as *const u8;
@@ -524,10 +524,8 @@ impl PreparedVoxel {
     }
 
     pub fn new(id: u32, v: &Voxel) -> PreparedVoxel {
-        // The frame covers the root's box, clipped to the cell. (With the
-        // boxes not clipped, a frame clipped to the voxel's content box had
-        // quanta typically 5 times finer, but primary rays inside the
-        // 12.5 M plant were 8 % slower.)
+        // The frame covers the root's box, clipped to the cell (see
+        // `clipped_to_cell`).
         let bvh = clipped_to_cell(v);
         let frame = bvh
             .first()
@@ -609,10 +607,9 @@ pub trait VoxelSource: Sync {
 /// A voxel as a source hands it to the kernel: borrowed where the source
 /// keeps it for at least as long as the borrow (every voxel of a
 /// [`ResidentSource`], a voxel a job holds), or shared where a cache may
-/// evict it meanwhile. A packet enters a voxel many times a frame; taking
-/// a reference count each time (two atomic operations, on a cache line
-/// that every render thread touches) made shadow rays inside the 12.5 M
-/// plant 2-8 % slower.
+/// evict it meanwhile. A packet enters a voxel many times a frame, and a
+/// reference count taken each time costs two atomic operations on a cache
+/// line that every render thread touches (`scripts/bench-kernel`).
 pub enum VoxelRef<'a> {
     Borrowed(&'a PreparedVoxel),
     Shared(Arc<PreparedVoxel>),
@@ -636,9 +633,8 @@ pub struct ResidentSource {
 }
 
 impl ResidentSource {
-    /// Every voxel of `db`, read, decoded and prepared on every core (the
-    /// 12.5 M plant's 5,542 voxels: 6.3-8.6 s one after another, 1.3-1.4 s
-    /// on two cores with the faster quantization). A bad voxel is an
+    /// Every voxel of `db`, read, decoded and prepared on every core (one
+    /// thread's rate: `trace/examples/prepare.rs`). A bad voxel is an
     /// error naming it: the first bad one by id, as in one pass in order
     /// (ids are handed out in order, and every id below a failed one is
     /// finished before the threads stop).

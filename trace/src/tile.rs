@@ -173,11 +173,9 @@ pub async fn render_tile(
 
 /// Runs a job until it is done or misses a voxel, first starting it on
 /// the block at (x, y) of the rect when one is given. Both are compiled
-/// for the kernel's instruction set: inlined into the tile loop (baseline
-/// x86-64) instead, a block's start computed the rays' directions and
-/// inverses as SSE2, four lanes at a time, 4.5 % of a client's render
-/// thread where `dray render`, which inlines it into AVX-512 code, took
-/// under 3 %.
+/// for the kernel's instruction set, as `dray render`'s are: inlined into
+/// the tile loop (baseline x86-64), a block's start would compute the
+/// rays' directions and inverses as SSE2, four lanes at a time.
 type Stepper<const N: usize, const BW: u32> = fn(
     &mut PacketJob<N, BW>,
     &Ctx,
@@ -279,9 +277,8 @@ struct Job<const N: usize, const BW: u32> {
 struct JobSource<'a> {
     held: &'a [Arc<PreparedVoxel>],
     loader: &'a dyn VoxelLoader,
-    /// A bit per voxel id: entered by one of the tile's packets. (A set
-    /// under a mutex cost about 1.5 % of the render threads' time: this
-    /// runs at every voxel a packet enters.)
+    /// A bit per voxel id: entered by one of the tile's packets. (Not a
+    /// set under a mutex: this runs at every voxel a packet enters.)
     touched: &'a [AtomicU64],
 }
 

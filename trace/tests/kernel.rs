@@ -3,7 +3,7 @@
 
 mod common;
 
-use common::{cameras, isas, plant, settings, real_model, Model};
+use common::{cameras, isas, plant, real_model, settings, Model};
 use dray_scene::geometry::{closer, intersect_triangle, Hit, Ray};
 use dray_scene::rng::Rng;
 use dray_trace::camera::Camera;

@@ -4,7 +4,7 @@
 
 mod common;
 
-use common::{cameras, isas, plant, settings, real_model, Model};
+use common::{cameras, isas, plant, real_model, settings, Model};
 use dray_scene::rng::Rng;
 use dray_trace::camera::Camera;
 use dray_trace::render::{render, Frame, Isa, Packets, ReflectRule, RenderSettings};

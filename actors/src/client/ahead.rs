@@ -15,19 +15,14 @@
 //!
 //! A longer wait is not the round trip but the scheduler having no tile
 //! to give (the display is waiting for a frame that another client's
-//! tiles hold up, say), which more tiles ahead would not shorten: on a
-//! cold-cache walkthrough, growing then made the two clients fetch 225 MB
-//! of voxels instead of 164, as each took tiles from the other's part of
-//! the image. The round trip is the quickest answer to a request lately
-//! ([`RoundTrips`]).
+//! tiles hold up, say), which more tiles ahead would not shorten: growing
+//! then only makes each client take tiles from the other's part of the
+//! image, and fetch their voxels (`scripts/bench-cluster latency`). The
+//! round trip is the quickest answer to a request lately ([`RoundTrips`]).
 //!
-//! Holding more tiles must not cost affinity: in the affinity benchmark
-//! (clients in one process on two cores, caches a quarter of the walk's
-//! working set) the clients grow to 20–32 tiles ahead, and fetched 0.38–0.47
-//! of what random assignment fetches (against 0.29–0.37 with one ahead)
-//! while the scheduler let a client with half a queue left take others'
-//! tiles; since it waits until a client holds at most one, 0.30–0.39
-//! (README, Affinity).
+//! Holding more tiles must not cost affinity: the scheduler lets a client
+//! take others' tiles only once it holds at most one of its own
+//! (`scripts/bench-cluster affinity`).
 
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};

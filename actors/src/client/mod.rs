@@ -532,9 +532,8 @@ fn finish_tile(
             // tell whose content the next frame's tiles show. Each sample
             // is handled about ten times on its way (sampled, sent, passed
             // on by the display, placed, projected into the next cameras,
-            // sent to the prefetcher); at one per 8 × 8 pixels the nodes
-            // spent about a sixth more time, and the affinity walk fetched
-            // as much.
+            // sent to the prefetcher), and denser samples cost the nodes
+            // time without fetching less (`scripts/bench-cluster affinity`).
             let side = job.tile.w.max(job.tile.h);
             let hits: Vec<[f32; 3]> = img
                 .sample_hits(

@@ -46,8 +46,8 @@ impl std::fmt::Display for TileRejected {
 
 /// Which pixels of a frame arrived: one bit each. At 640×480 that is
 /// 38 KB, which stays in the caches and on the heap; a byte per pixel
-/// (300 KB, fresh pages every frame) had the display waiting on memory in
-/// its check of each tile row.
+/// (300 KB, fresh pages every frame) would keep the display waiting on
+/// memory in its check of each tile row.
 #[derive(Debug)]
 struct Coverage(Vec<u64>);
 

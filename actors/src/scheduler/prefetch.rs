@@ -56,11 +56,10 @@ pub const WARM_STRIDE: u64 = 4;
 
 /// Whether to plan the hints for frame `next`, after `quiet` completed
 /// frames in a row whose packets met no missing voxel. Planning samples
-/// thousands of rays through the BSP for every frame (about 2 % of a
-/// two-core machine in a warm cluster); while the clients' caches already
-/// hold what the frames need, hints fetch nothing and every fourth frame
-/// is planned, to notice new content. The first frame with a miss plans
-/// every frame again.
+/// thousands of rays through the BSP for every frame; while the clients'
+/// caches already hold what the frames need, hints fetch nothing, so only
+/// every fourth frame is planned, to notice new content. The first frame
+/// with a miss plans every frame again.
 pub fn plans_frame(quiet: u32, next: u64) -> bool {
     quiet < WARM_AFTER || next.is_multiple_of(WARM_STRIDE)
 }
@@ -77,8 +76,8 @@ const RECENT_CAMERAS: usize = 16;
 /// latest. Falls back to the latest camera when the extrapolation is not a
 /// usable view, and after a cut (the camera turned by more than half the
 /// field of view from the one before, see [`super::reproject::continues`]):
-/// a jump is no motion to go on with (across the bench's jump back to the
-/// path's start it predicted a view as far beyond the start).
+/// a jump is no motion to go on with (extrapolated across a jump back to
+/// a path's start, it would predict a view as far beyond the start).
 pub fn predict_camera(prev: Option<(u64, &Camera)>, last: (u64, &Camera), next: u64) -> Camera {
     let (s1, c1) = last;
     let Some((s0, c0)) = prev.filter(|(s0, _)| *s0 < s1) else {

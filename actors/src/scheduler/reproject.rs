@@ -40,8 +40,8 @@ pub fn votes<K: Ord>(
 /// the eye moved farther than the old frame's farthest hit (everything it
 /// showed is behind or beside the new eye, as when it passes through a
 /// wall). The farthest hit, not a typical one: walking up to something,
-/// most hits are nearer than a frame's step (half the median distance cut
-/// 40 frames of the affinity benchmark's 60-frame walk).
+/// most hits are nearer than a frame's step (half the median distance
+/// would cut most frames of `scripts/bench-cluster affinity`'s walk).
 pub fn continues(
     then: &CameraBasis,
     now: &CameraBasis,

@@ -318,10 +318,8 @@ impl Frame {
         // about the new tiles, and its hits land in the wrong ones. Each
         // client keeps its part of the screen (its previous tiles), so that
         // the clients stay on the sides of the image whose content they
-        // cached as the path goes on. Deciding them afresh (regions grown
-        // from nothing) made the affinity benchmark's walk fetch 1.9 MB a
-        // frame over its whole last loop in three runs of five, against
-        // 0.7.
+        // cached as the path goes on; regions grown afresh fetch far more
+        // (`scripts/bench-cluster affinity`).
         let cut = prev.filter(|p| !self.continues_from(p));
         let guide = prev.filter(|_| cut.is_none());
         self.warm = match guide.filter(|p| p.grid == self.grid) {
@@ -336,9 +334,9 @@ impl Frame {
                     Some(_) => None,
                     // No frame has completed, but one is in flight: its
                     // clients, so that the first frames' regions agree
-                    // (each grown on its own, the second frame's disagreed
-                    // with the first's by chance, and the cold walk's
-                    // second frame fetched 4-80 MB, against 4-11).
+                    // (each grown on its own, the second frame's would
+                    // disagree with the first's by chance and, with cold
+                    // caches, fetch far more: `scripts/bench-cluster latency`).
                     None => self.first_guide.clone(),
                 };
                 let n = self.tiles.len();
@@ -567,15 +565,15 @@ impl Frame {
     /// tiles that the previous frame rendered without a miss, unless the
     /// camera cut since (see [`Frame::sort_fresh`]), or of any tiles for a
     /// client that holds the whole model (`holds_model`), which misses
-    /// nothing: there a
-    /// tile is quick and its messages weigh; where voxels were missing,
-    /// tiles are slow and uneven, and they go one by one so that the
-    /// clients share them evenly (a cold walk took in whole frames as
-    /// blocks before any of their hits told where each client's content
-    /// lies, and fetched a quarter more). Only a tile of `c`'s own queue
-    /// or of nobody's comes with a block: a tile taken from another
-    /// client's queue comes alone, as that client's cache holds what it
-    /// shows. Returns the tiles, row by row, taken out of their queues.
+    /// nothing: there a tile is quick and its messages weigh; where voxels
+    /// were missing, tiles are slow and uneven, and they go one by one so
+    /// that the clients share them evenly (in blocks, a cold walk's first
+    /// frames would go out before any hit told where each client's content
+    /// lies, and fetch more: `scripts/bench-cluster latency`). Only a tile
+    /// of `c`'s own queue or of nobody's comes with a block: a tile taken
+    /// from another client's queue comes alone, as that client's cache
+    /// holds what it shows. Returns the tiles, row by row, taken out of
+    /// their queues.
     fn block(
         &mut self,
         i: usize,
@@ -820,11 +818,8 @@ impl Scheduler {
                         // run dry, with at most one tile left: a client with
                         // a queue of its own does not need it, and a tile
                         // taken from another's region fetches what its cache
-                        // lacks. (Letting a client take them while it held
-                        // up to as many tiles as it still asked for, clients
-                        // holding up to 32 ahead fetched 0.52 of what random
-                        // tiles fetch on the affinity walk; with at most
-                        // one, 0.38.)
+                        // lacks, the more so the more tiles clients hold
+                        // ahead (`scripts/bench-cluster affinity`).
                         if self.opts.affinity {
                             let held: usize = self.frames.values().map(|f| f.held_by(node)).sum();
                             if held > 1 {

@@ -28,11 +28,10 @@ use glam::Vec3;
 /// tiles with them. `None` when the content shifts as a whole or does not
 /// move (reprojection then decides), or nobody had a tile.
 ///
-/// Around the centre, not around that point: on the bench's walk the
-/// point drifts across a third of the image within a loop (the camera
-/// turns as it walks), and sectors around it fetched 1.27-1.37 MB of
-/// voxels a frame, against 0.75-0.80 around the centre (reprojected
-/// regions: 1.12-1.18). Sectors that stay put keep their content.
+/// Around the centre, not around that point: the point drifts across the
+/// image as the camera turns while it walks, and sectors that stay put
+/// keep their content (fewer voxels fetched than around the point or by
+/// reprojected regions: `scripts/bench-cluster affinity`).
 pub fn assign<N: Ord + Clone>(
     grid: &TileGrid,
     then: &CameraBasis,
@@ -106,12 +105,9 @@ fn flow_focus(moves: impl IntoIterator<Item = ((f32, f32), (f32, f32))>) -> Opti
 /// Per tile of `grid`, its sector (`0..k`) around `focus`: the tiles in
 /// order of the angle of their centres around it, clockwise from straight
 /// up, cut into `k` runs of as many tiles each as can be. Two sectors are
-/// the left and right halves: on the bench's walks they fetched 0.67 MB a
-/// frame inside the plant against 0.88 for the top and bottom halves, and
-/// 161-165 MB over the cold walkthrough against 213 (reprojected regions:
-/// 163-168), as the image's left and right show different parts of the
-/// model, while its top and bottom share the distant ones near the
-/// horizon.
+/// the left and right halves, as the image's left and right show different
+/// parts of the model, while its top and bottom share the distant ones
+/// near the horizon (`scripts/bench-cluster affinity` and `latency`).
 fn sectors(grid: &TileGrid, focus: (f32, f32), k: usize) -> Vec<usize> {
     let n = grid.count();
     let k = k.max(1);

@@ -1,7 +1,7 @@
 //! Streaming PLY and OBJ importers.
 //!
 //! [`import_model`] streams every triangle of a model file to a sink, in file
-//! order, with the original ids of DESIGN.md ("Conventions"): polygons are
+//! order, with the original ids of docs/design.md ("Conventions"): polygons are
 //! fan-triangulated and ids count the resulting triangles. Vertices live in
 //! memory (bounded by [`ImportOptions::max_vertex_bytes`]); faces are streamed,
 //! twice when vertex normals must be computed, so memory is proportional to

@@ -34,8 +34,8 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicU64;
 use std::time::Instant;
 
-/// Default largest triangle count of a voxel (see the README for the
-/// measurement behind it).
+/// Default largest triangle count of a voxel (measured by `cargo bench -p
+/// dray-scene --bench max_triangles`; docs/benchmarks.md has the table).
 pub const DEFAULT_MAX_TRIANGLES: u32 = 4096;
 /// Default deepest level of the high-level BSP.
 pub const DEFAULT_MAX_DEPTH: u32 = 40;

@@ -361,8 +361,8 @@ pub(crate) fn decode(blob: &[u8]) -> Result<Voxel, VoxelError> {
     // The structure is checked once, and the bounds are not checked at
     // all: refitting computes them from validated, finite positions, so
     // every box holds its triangles and children by construction (the
-    // check was 7 % of decoding and preparing a voxel; the tests decode
-    // and validate).
+    // check would be a real share of decoding and preparing a voxel,
+    // `trace/examples/prepare.rs`; the tests decode and validate).
     v.validate_structure()?;
     bvh::refit(&mut v.bvh, &v.triangles, &v.positions);
     debug_assert!(v.validate_bounds().is_ok());
@@ -371,7 +371,8 @@ pub(crate) fn decode(blob: &[u8]) -> Result<Voxel, VoxelError> {
 
 thread_local! {
     /// This thread's zstd decompression context, made on its first voxel:
-    /// making one for every voxel was 3 % of decoding and preparing it.
+    /// making one for every voxel would add to decoding each
+    /// (`trace/examples/prepare.rs`).
     static DECOMPRESSOR: std::cell::RefCell<Option<zstd::bulk::Decompressor<'static>>> =
         const { std::cell::RefCell::new(None) };
 }

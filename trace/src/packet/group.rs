@@ -16,11 +16,10 @@
 //! triangles are tested in; which blocking triangle a lane records may.
 //!
 //! What a node visit costs here is mostly the path from its load to its
-//! children's lane masks (llvm-mca: about 97 cycles of 160 instructions
-//! with every load an L1 hit). Node boxes kept in floats cut that path
-//! (warm caches 1100 → 950 ticks a voxel) but doubled the nodes' memory,
-//! and with cold caches were 12 % slower (1650 → 1850); the box test's
-//! last steps take the shortest exact forms instead (see
+//! children's lane masks, even with every load an L1 hit. Node boxes kept
+//! in floats would cut that path but double the nodes' memory, which costs
+//! more with cold caches (`scripts/bench-kernel`); the box test's last
+//! steps take the shortest exact forms instead (see
 //! [`GroupRays::children`]).
 
 use super::{edge_lane, prefetch_children, Packet, Shear, WIDEN};
