@@ -158,7 +158,7 @@ pub fn preflight(cfg: &Config, role: Option<Role>) -> Result<(), ClusterError> {
         dray_scene::db::Database::open(&cfg.scene.database).map_err(|e| {
             ClusterError::Config(dray_config::ConfigError::Invalid {
                 key: "scene.database".into(),
-                problem: format!("{}: {e}", cfg.scene.database.display()),
+                problem: e.to_string(),
             })
         })?;
     }

@@ -557,6 +557,25 @@ fn check_camera(key: &str, c: &CameraConfig) -> Result<(), ConfigError> {
     if c.eye == c.look {
         return Err(invalid(format!("{key}.look"), "equals the eye position"));
     }
+    // The same test as the kernel's camera check, so a config that passes
+    // never makes a camera the clients refuse.
+    let w = std::array::from_fn::<f32, 3, _>(|k| c.look[k] - c.eye[k]);
+    let u = c.up;
+    let cross = [
+        w[1] * u[2] - w[2] * u[1],
+        w[2] * u[0] - w[0] * u[2],
+        w[0] * u[1] - w[1] * u[0],
+    ];
+    let len2 = |v: [f32; 3]| v.iter().map(|x| x * x).sum::<f32>();
+    if len2(u) == 0.0 {
+        return Err(invalid(format!("{key}.up"), "is the zero vector"));
+    }
+    if len2(cross) <= 1e-12 * len2(w) * len2(u) {
+        return Err(invalid(
+            format!("{key}.up"),
+            "is parallel to the view direction (look - eye)",
+        ));
+    }
     Ok(())
 }
 

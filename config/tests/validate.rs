@@ -127,6 +127,16 @@ fn mistakes_name_their_key() {
         "(0, 180)",
     );
     assert_names(
+        broken("up = [0.0, 1.0, 0.0]", "up = [0.0, 0.0, 0.0]"),
+        "render.camera.up",
+        "zero vector",
+    );
+    assert_names(
+        broken("up = [0.0, 1.0, 0.0]", "up = [0.0, -3.0, 30.0]"),
+        "render.camera.up",
+        "parallel",
+    );
+    assert_names(
         broken(
             "[links.client_store]\nlatency_ms = 0.0",
             "[links.client_store]\nlatency_ms = -3.0",
