@@ -14,6 +14,13 @@
 //!
 //! Shaped links (`[links]`) go through a UDP relay that the dialing node
 //! starts on its own machine; in-process they are shaped by the network.
+//! A node link (a store's uplink, a client's downlink) is one shaper that
+//! every connection of that node crosses: in-process the network's
+//! [`NodeLink`]; over QUIC a relay the store runs in front of its own
+//! socket (every peer enters through it), and for a client one shaper that
+//! all the relays of its dials share (it dials every peer). Either way the
+//! shared state lives in the process that owns the link, so separate
+//! processes need no coordination.
 
 use crate::client::{run_client, ClientOptions, ClientSummary};
 use crate::display::{path::CameraPath, run_display_until, DisplayOptions, DisplaySummary};
@@ -23,14 +30,15 @@ use crate::scheduler::{
     SchedulerOptions, SchedulerSummary,
 };
 use crate::settings::{wire_camera, wire_settings};
-use crate::store::{run_store, StoreOptions, StoreSummary};
+use crate::store::{run_store, StoreDisk, StoreOptions, StoreSummary};
 use crate::{ActorError, Shard};
 use dray_config::{Config, LinkConfig};
 use dray_protocol::{Address, Camera, Message, Name, Role, Shutdown};
 use dray_runtime::certs::NodeIdentity;
 use dray_runtime::quic::QuicTransport;
-use dray_runtime::relay::UdpRelay;
-use dray_runtime::{Bus, InProcNet, LinkShape, Mailbox};
+use dray_runtime::relay::{shared_link, RelayShaping, UdpRelay};
+use dray_runtime::shaping::SharedShaper;
+use dray_runtime::{Bus, InProcNet, LinkShape, Mailbox, NodeLink};
 use dray_trace::render::Isa;
 use std::net::SocketAddr;
 use std::time::Duration;
@@ -103,6 +111,14 @@ fn shape(l: &LinkConfig) -> LinkShape {
         jitter: l.jitter(),
         bandwidth_bps: l.bandwidth_bps(),
         loss: l.loss,
+    }
+}
+
+/// Each store's modelled disk (`links.store_disk`).
+fn store_disk(cfg: &Config) -> StoreDisk {
+    StoreDisk {
+        access_time: cfg.links.store_disk.access_time(),
+        bandwidth_bps: cfg.links.store_disk.bandwidth_bps(),
     }
 }
 
@@ -292,6 +308,7 @@ fn store_options(cfg: &Config, i: usize) -> Result<StoreOptions, ClusterError> {
         database: cfg.scene.database.clone(),
         shard: Shard { index, count },
         max_concurrent: cfg.stores[i].max_concurrent as usize,
+        disk: store_disk(cfg),
     })
 }
 
@@ -357,6 +374,20 @@ pub async fn sim(cfg: &Config, opts: &RunOptions) -> Result<RunSummary, ClusterE
         set(c, &display_bus, &links.client_scheduler)?;
     }
     set(&display_bus, &sched_bus, &links.display)?;
+    let set_node = |bus: &Bus, side: NodeLink, l: &LinkConfig| {
+        if l.is_shaped() {
+            net.set_node_link(bus.node(), side, shape(l))
+                .map_err(|e| node_err(bus.node(), e))
+        } else {
+            Ok(())
+        }
+    };
+    for s in &store_buses {
+        set_node(s, NodeLink::Uplink, &links.store_uplink)?;
+    }
+    for c in &client_buses {
+        set_node(c, NodeLink::Downlink, &links.client_downlink)?;
+    }
 
     // Every mailbox exists before any actor sends.
     let sched_boxes = scheduler_mailboxes(&sched_bus)?;
@@ -374,7 +405,10 @@ pub async fn sim(cfg: &Config, opts: &RunOptions) -> Result<RunSummary, ClusterE
     let stores: Vec<_> = store_boxes
         .into_iter()
         .enumerate()
-        .map(|(i, mb)| Ok(tokio::spawn(run_store(mb, store_options(cfg, i)?))))
+        .map(|(i, mb)| {
+            let opts = store_options(cfg, i)?;
+            Ok(tokio::spawn(run_store(mb, opts)))
+        })
         .collect::<Result<_, ClusterError>>()?;
     let sched = spawn_scheduler(cfg, sched_boxes)?;
     let copts = client_options(cfg, opts)?;
@@ -438,26 +472,37 @@ pub enum NodeOutcome {
     Stopped,
 }
 
+/// Port 0 on the loopback address of `addr`'s family: for a socket that
+/// only a relay on this machine talks to.
+fn loopback_like(addr: SocketAddr) -> SocketAddr {
+    let ip: std::net::IpAddr = if addr.is_ipv4() {
+        std::net::Ipv4Addr::LOCALHOST.into()
+    } else {
+        std::net::Ipv6Addr::LOCALHOST.into()
+    };
+    SocketAddr::new(ip, 0)
+}
+
 /// A QUIC transport and the relays its shaped dials go through.
 struct Links {
     transport: std::sync::Arc<QuicTransport>,
     _relays: Vec<UdpRelay>,
     dialed: Vec<Name>,
+    /// This node's downlink, shared by the relays of all its dials.
+    downlink: Option<SharedShaper>,
 }
 
 impl Links {
     async fn dial(&mut self, peer: Name, addr: SocketAddr, l: &LinkConfig) -> Result<(), String> {
-        let target = if l.is_shaped() {
+        let target = if l.is_shaped() || self.downlink.is_some() {
             // The relay runs on this machine, whatever the peer's.
-            let local = SocketAddr::new(
-                if addr.is_ipv4() {
-                    std::net::Ipv4Addr::LOCALHOST.into()
-                } else {
-                    std::net::Ipv6Addr::LOCALHOST.into()
-                },
-                0,
-            );
-            let relay = UdpRelay::start(local, addr, shape(l), shape(l))
+            let shaping = RelayShaping {
+                to_upstream: shape(l),
+                to_client: shape(l),
+                shared_to_client: self.downlink.clone(),
+                ..RelayShaping::default()
+            };
+            let relay = UdpRelay::start_shaped(loopback_like(addr), addr, shaping)
                 .await
                 .map_err(|e| format!("relay to {peer}: {e}"))?;
             let a = relay.local_addr();
@@ -537,14 +582,36 @@ pub async fn node(
             RoleBoxes::One(open_mailbox(&bus, actor, MAILBOX)?)
         }
     };
-    let transport = QuicTransport::start(&bus, &identity, listen)
+    // A store with a shaped uplink listens behind a relay of its own on its
+    // address, so that every peer's traffic crosses the one shared link.
+    let uplink = (role == Role::Store && cfg.links.store_uplink.is_shaped())
+        .then(|| shared_link(shape(&cfg.links.store_uplink), index as u64 + 1));
+    let quic_listen = if uplink.is_some() {
+        loopback_like(listen)
+    } else {
+        listen
+    };
+    let transport = QuicTransport::start(&bus, &identity, quic_listen)
         .await
-        .map_err(|e| node_err(&me, format!("listening on {listen}: {e}")))?;
+        .map_err(|e| node_err(&me, format!("listening on {quic_listen}: {e}")))?;
     let mut links = Links {
         transport: transport.clone(),
         _relays: Vec::new(),
         dialed: Vec::new(),
+        downlink: (role == Role::Client && cfg.links.client_downlink.is_shaped())
+            .then(|| shared_link(shape(&cfg.links.client_downlink), index as u64 + 1)),
     };
+    if let Some(uplink) = uplink {
+        let node = transport.local_addr().map_err(|e| node_err(&me, e))?;
+        let shaping = RelayShaping {
+            shared_to_client: Some(uplink),
+            ..RelayShaping::default()
+        };
+        let relay = UdpRelay::start_shaped(listen, node, shaping)
+            .await
+            .map_err(|e| node_err(&me, format!("uplink relay on {listen}: {e}")))?;
+        links._relays.push(relay);
+    }
     let stores = cfg.store_addrs()?;
     let unshaped = LinkConfig::default();
     let dial_stores = |l: &LinkConfig| {

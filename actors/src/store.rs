@@ -5,20 +5,23 @@
 //! (on tokio's blocking pool), at most [`StoreOptions::max_concurrent`]
 //! read or being sent at once (which bounds the store's memory), and the
 //! answer is sent from a task of its own so that the mailbox loop never
-//! waits on a slow peer.
+//! waits on a slow peer. A [`StoreDisk`] models a slower disk on tokio's
+//! clock (so both engines and paused-clock tests honour it).
 
 use crate::{ActorError, Shard};
 use dray_protocol::{
     Address, Blob, FetchVoxel, ManifestData, Message, VoxelError, VoxelLoaded, MAX_TEXT_LEN,
 };
-use dray_runtime::{ActorRef, Delivery, Mailbox};
+use dray_runtime::{ActorRef, Delivery, LinkShape, Mailbox};
 use dray_scene::db::manifest::MANIFEST_FILE;
 use dray_scene::db::Database;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
 use tokio::sync::Semaphore;
 use tokio::task::JoinSet;
+use tokio::time::Instant;
 use tracing::{debug, info, warn};
 
 /// How a store runs.
@@ -30,6 +33,54 @@ pub struct StoreOptions {
     pub shard: Shard,
     /// Most blobs read or being sent at once.
     pub max_concurrent: usize,
+    /// The disk as modelled; the default: reads take what the real disk takes.
+    pub disk: StoreDisk,
+}
+
+/// The disk a store reads its blobs from, as modelled: one read after
+/// another, each taking the access time plus its bytes over the bandwidth.
+/// The default is no model: reads take what the real disk takes.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct StoreDisk {
+    /// Time per read before its bytes flow (a seek).
+    pub access_time: Duration,
+    /// Read bandwidth in bits per second; `None`: unlimited.
+    pub bandwidth_bps: Option<u64>,
+}
+
+impl StoreDisk {
+    /// How long the disk is busy reading `bytes`.
+    fn read_time(&self, bytes: u64) -> Duration {
+        let stream = LinkShape {
+            bandwidth_bps: self.bandwidth_bps,
+            ..LinkShape::none()
+        };
+        self.access_time + stream.transmission_time(usize::try_from(bytes).unwrap_or(usize::MAX))
+    }
+}
+
+/// A modelled disk's queue: when it is free for the next read.
+struct DiskQueue {
+    disk: StoreDisk,
+    free_at: Mutex<Instant>,
+}
+
+impl DiskQueue {
+    fn new(disk: StoreDisk) -> Option<Arc<DiskQueue>> {
+        (disk != StoreDisk::default()).then(|| {
+            Arc::new(DiskQueue {
+                disk,
+                free_at: Mutex::new(Instant::now()),
+            })
+        })
+    }
+
+    /// Books a read of `bytes` asked for now; returns when it completes.
+    fn book(&self, bytes: u64) -> Instant {
+        let mut free_at = self.free_at.lock().unwrap_or_else(|p| p.into_inner());
+        *free_at = (*free_at).max(Instant::now()) + self.disk.read_time(bytes);
+        *free_at
+    }
 }
 
 /// What a store did, returned when it stops.
@@ -64,7 +115,9 @@ pub(crate) fn clip(mut s: String) -> String {
     s
 }
 
-/// Runs a store until it gets [`Message::Shutdown`] or its mailbox closes.
+/// Runs a store until it gets [`Message::Shutdown`] or its mailbox closes;
+/// each blob read takes at least what `opts.disk` says (the real read
+/// overlaps the modelled time).
 pub async fn run_store(mut mb: Mailbox, opts: StoreOptions) -> Result<StoreSummary, ActorError> {
     let actor = mb.address().to_string();
     let db_err = |message: String| ActorError::Database {
@@ -87,6 +140,7 @@ pub async fn run_store(mut mb: Mailbox, opts: StoreOptions) -> Result<StoreSumma
     info!(%actor, database = %opts.database.display(), shard = %opts.shard, voxels, "store ready");
     let db = Arc::new(db);
     let manifest = Arc::new(manifest);
+    let disk = DiskQueue::new(opts.disk);
     let permits = Arc::new(Semaphore::new(opts.max_concurrent.max(1)));
     let counters = Arc::new(Counters::default());
     let me = mb.handle();
@@ -128,20 +182,34 @@ pub async fn run_store(mut mb: Mailbox, opts: StoreOptions) -> Result<StoreSumma
                     let why = format!("voxel {id}: no such voxel (the database has {voxels})");
                     refuse(&mut tasks, &me, from, id, why);
                 } else {
-                    let (db, permits, counters, me) =
-                        (db.clone(), permits.clone(), counters.clone(), me.clone());
+                    let (db, permits, counters, me, disk) = (
+                        db.clone(),
+                        permits.clone(),
+                        counters.clone(),
+                        me.clone(),
+                        disk.clone(),
+                    );
                     tasks.spawn(async move {
                         // The permit is held until the answer is sent, so
                         // that at most `max_concurrent` blobs are in memory
                         // at once however slowly peers take them.
                         let (permit, read) = match permits.acquire_owned().await {
-                            Ok(permit) => (
-                                Some(permit),
-                                tokio::task::spawn_blocking(move || db.read_blob(id))
+                            Ok(permit) => {
+                                let bytes = db
+                                    .manifest
+                                    .voxels
+                                    .get(id as usize)
+                                    .map_or(0, |v| v.compressed_bytes);
+                                let done = disk.map(|d| d.book(bytes));
+                                let read = tokio::task::spawn_blocking(move || db.read_blob(id))
                                     .await
                                     .map_err(|e| format!("read task failed: {e}"))
-                                    .and_then(|r| r.map_err(|e| e.to_string())),
-                            ),
+                                    .and_then(|r| r.map_err(|e| e.to_string()));
+                                if let Some(done) = done {
+                                    tokio::time::sleep_until(done).await;
+                                }
+                                (Some(permit), read)
+                            }
                             Err(_) => (None, Err("the store is stopping".into())),
                         };
                         let msg = match read {

@@ -162,6 +162,7 @@ async fn a_missing_database_is_named() {
             database: missing.clone(),
             shard: Shard::ALL,
             max_concurrent: 1,
+            disk: Default::default(),
         },
     )
     .await

@@ -520,6 +520,52 @@ pub struct LinksConfig {
     /// Between the display and the scheduler.
     #[serde(default)]
     pub display: LinkConfig,
+    /// Each store's egress: one link shared by everything the store sends,
+    /// to every client it serves (after each pair's own link).
+    #[serde(default)]
+    pub store_uplink: LinkConfig,
+    /// Each client's ingress: one link shared by everything the client
+    /// receives, from every store (after each pair's own link).
+    #[serde(default)]
+    pub client_downlink: LinkConfig,
+    /// Each store's reads from its database.
+    #[serde(default)]
+    pub store_disk: DiskConfig,
+}
+
+/// A store's disk: each blob read occupies it for the access time plus the
+/// blob's size over the bandwidth, one read after another. Jitter and loss
+/// have no meaning for a disk, so they are unknown keys here.
+#[derive(Clone, Copy, Debug, Default, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct DiskConfig {
+    /// Access time per read, ms.
+    #[serde(default)]
+    pub latency_ms: f64,
+    /// Read bandwidth, Mbit/s; none: unlimited.
+    #[serde(default)]
+    pub bandwidth_mbps: Option<f64>,
+}
+
+impl DiskConfig {
+    /// The access time per read.
+    pub fn access_time(&self) -> Duration {
+        Duration::from_secs_f64(self.latency_ms / 1000.0)
+    }
+
+    /// The read bandwidth in bits per second.
+    pub fn bandwidth_bps(&self) -> Option<u64> {
+        self.as_link().bandwidth_bps()
+    }
+
+    /// The same numbers as a link, to validate them as links are.
+    fn as_link(&self) -> LinkConfig {
+        LinkConfig {
+            latency_ms: self.latency_ms,
+            bandwidth_mbps: self.bandwidth_mbps,
+            ..LinkConfig::default()
+        }
+    }
 }
 
 /// The cluster certificates.
@@ -822,6 +868,14 @@ impl Config {
             .client_scheduler
             .validate("links.client_scheduler")?;
         self.links.display.validate("links.display")?;
+        self.links.store_uplink.validate("links.store_uplink")?;
+        self.links
+            .client_downlink
+            .validate("links.client_downlink")?;
+        self.links
+            .store_disk
+            .as_link()
+            .validate("links.store_disk")?;
         Ok(())
     }
 
@@ -890,3 +944,14 @@ impl Config {
         v
     }
 }
+
+/// The dotted keys whose values are paths; [`Config::load`] takes each
+/// relative one relative to the config file's directory. A program that
+/// builds a config as a TOML table (the experiment runner) resolves these
+/// keys itself, so that the table means what the file meant.
+pub const PATH_KEYS: [&str; 4] = [
+    "scene.database",
+    "render.camera_path",
+    "display.output",
+    "certs.dir",
+];

@@ -230,3 +230,57 @@ fn tiles_ahead_grow_to_32_unless_fixed() {
         16
     );
 }
+
+/// The example with `table` appended.
+fn with_table(table: &str) -> Result<Config, ConfigError> {
+    Config::parse(&format!("{}\n{table}\n", example_text()))
+}
+
+#[test]
+fn node_links_are_unshaped_by_default_and_validated_by_key() {
+    let cfg = Config::parse(&example_text()).unwrap();
+    assert!(!cfg.links.store_uplink.is_shaped());
+    assert!(!cfg.links.client_downlink.is_shaped());
+    assert_eq!(cfg.links.store_disk.bandwidth_bps(), None);
+
+    let cfg = with_table(
+        "[links.store_uplink]\nbandwidth_mbps = 1000.0\n\
+         [links.client_downlink]\nlatency_ms = 2.0\nbandwidth_mbps = 100.0\n\
+         [links.store_disk]\nbandwidth_mbps = 440.0\nlatency_ms = 8.0",
+    )
+    .unwrap();
+    assert_eq!(cfg.links.store_uplink.bandwidth_bps(), Some(1_000_000_000));
+    assert_eq!(cfg.links.client_downlink.bandwidth_bps(), Some(100_000_000));
+    assert_eq!(cfg.links.store_disk.bandwidth_bps(), Some(440_000_000));
+    assert_eq!(
+        cfg.links.store_disk.access_time(),
+        std::time::Duration::from_millis(8)
+    );
+
+    assert_names(
+        with_table("[links.store_uplink]\nbandwidth_mbps = 0.0").unwrap_err(),
+        "links.store_uplink.bandwidth_mbps",
+        "above 0",
+    );
+    assert_names(
+        with_table("[links.client_downlink]\nloss = 1.0").unwrap_err(),
+        "links.client_downlink.loss",
+        "[0, 1)",
+    );
+    assert_names(
+        with_table("[links.store_disk]\nbandwidth_mbps = -55.0").unwrap_err(),
+        "links.store_disk.bandwidth_mbps",
+        "above 0",
+    );
+    assert_names(
+        with_table("[links.store_disk]\nlatency_ms = 1e9").unwrap_err(),
+        "links.store_disk.latency_ms",
+        "between 0 and 60000",
+    );
+    // A disk neither jitters nor loses reads: those keys do not exist there.
+    assert_names(
+        with_table("[links.store_disk]\nloss = 0.1").unwrap_err(),
+        "",
+        "unknown field `loss`",
+    );
+}

@@ -2,7 +2,7 @@
 //! with the same encoding, limits and (optionally) shaping as the wire.
 
 use crate::bus::{Bus, BusError, Inner, PeerLink, SendError};
-use crate::shaping::{Lane, LinkShape, Shaper};
+use crate::shaping::{shared, Lane, LinkShape, Path, Shaper, SharedShaper};
 use dray_protocol::{decode_envelope, encode_envelope, Envelope, Name, Role};
 use std::collections::{BTreeMap, HashMap};
 use std::hash::{Hash, Hasher};
@@ -20,7 +20,7 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 }
 
 struct Pipe {
-    shaper: Mutex<Shaper>,
+    path: Path,
     /// One ordered queue per lane (control, bulk).
     tx: [mpsc::Sender<(Instant, Envelope)>; 2],
 }
@@ -54,7 +54,7 @@ impl InProcLink {
                 } else {
                     Lane::Control
                 };
-                let at = lock(&pipe.shaper).reliable(body.len(), lane);
+                let at = pipe.path.reliable(body.len(), lane);
                 trace!(kind = kind.name(), bytes = body.len(), "shaped send");
                 let env = decode_envelope(&body)?;
                 pipe.tx[lane as usize]
@@ -85,17 +85,14 @@ impl InProcLink {
         tx
     }
 
-    fn set_shape(&self, shape: LinkShape, seed: u64) {
+    fn set_path(&self, path: Path) {
         let mut pipe = lock(&self.pipe);
-        if shape.is_none() {
+        if path.is_unshaped() {
             *pipe = None;
             return;
         }
         let tx = [self.spawn_lane("control"), self.spawn_lane("bulk")];
-        *pipe = Some(Arc::new(Pipe {
-            shaper: Mutex::new(Shaper::new(shape, seed, Duration::ZERO)),
-            tx,
-        }));
+        *pipe = Some(Arc::new(Pipe { path, tx }));
     }
 }
 
@@ -104,18 +101,61 @@ struct NetState {
     nodes: BTreeMap<Name, (Weak<Inner>, Role)>,
     links: HashMap<(Name, Name), Arc<InProcLink>>,
     shapes: HashMap<(Name, Name), LinkShape>,
+    /// Each node's egress, shared by every link from it.
+    uplinks: HashMap<Name, SharedShaper>,
+    /// Each node's ingress, shared by every link to it.
+    downlinks: HashMap<Name, SharedShaper>,
+}
+
+impl NetState {
+    /// The hops of `from → to`: the sender's uplink, the pair's own link
+    /// (a fresh shaper), the receiver's downlink, each where shaped.
+    fn path(&self, from: &Name, to: &Name) -> Path {
+        let pair = self
+            .shapes
+            .get(&(from.clone(), to.clone()))
+            .map(|&shape| shared(Shaper::new(shape, seed((from, to)), Duration::ZERO)));
+        let hops = [
+            self.uplinks.get(from).cloned(),
+            pair,
+            self.downlinks.get(to).cloned(),
+        ];
+        Path::new(hops.into_iter().flatten().collect())
+    }
+
+    /// Gives every existing link that `touches` its current path.
+    fn refresh(&self, touches: impl Fn(&Name, &Name) -> bool) {
+        for ((from, to), link) in &self.links {
+            if touches(from, to) {
+                link.set_path(self.path(from, to));
+            }
+        }
+    }
+}
+
+/// Which side of a node a [`InProcNet::set_node_link`] shapes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum NodeLink {
+    /// Everything the node sends, to any node.
+    Uplink,
+    /// Everything the node receives, from any node.
+    Downlink,
 }
 
 /// A network of in-process nodes: every node added is connected to every
-/// other one. Shaping and partitions can be set per pair of nodes.
+/// other one. Shaping and partitions can be set per pair of nodes, and a
+/// node's uplink and downlink, each shared by all of its links, can be
+/// shaped too; a message crosses the sender's uplink, the pair's link and
+/// the receiver's downlink in turn.
 #[derive(Clone, Default)]
 pub struct InProcNet {
     state: Arc<Mutex<NetState>>,
 }
 
-fn seed(a: &Name, b: &Name) -> u64 {
+/// A shaper's random seed, derived from what it shapes.
+fn seed(what: impl Hash) -> u64 {
     let mut h = std::collections::hash_map::DefaultHasher::new();
-    (a, b).hash(&mut h);
+    what.hash(&mut h);
     h.finish()
 }
 
@@ -157,14 +197,11 @@ impl InProcNet {
             dst: Arc::downgrade(to),
             pipe: Mutex::new(None),
         });
-        let key = (from.node.clone(), to.node.clone());
-        let shape = {
+        {
             let mut st = lock(&self.state);
-            st.links.insert(key.clone(), link.clone());
-            st.shapes.get(&key).copied()
-        };
-        if let Some(shape) = shape {
-            link.set_shape(shape, seed(&key.0, &key.1));
+            st.links
+                .insert((from.node.clone(), to.node.clone()), link.clone());
+            link.set_path(st.path(&from.node, &to.node));
         }
         from.peer_up(to.node.clone(), to.role, PeerLink::InProc(link));
     }
@@ -176,11 +213,39 @@ impl InProcNet {
         shape.validate()?;
         let mut st = lock(&self.state);
         for key in [(a.clone(), b.clone()), (b.clone(), a.clone())] {
-            st.shapes.insert(key.clone(), shape);
-            if let Some(link) = st.links.get(&key) {
-                link.set_shape(shape, seed(&key.0, &key.1));
-            }
+            st.shapes.insert(key, shape);
         }
+        st.refresh(|from, to| (from == a && to == b) || (from == b && to == a));
+        Ok(())
+    }
+
+    /// Shapes `node`'s uplink or downlink: one link shared by all of its
+    /// connections (now and later ones), e.g. a server's egress that every
+    /// client's traffic crosses. [`LinkShape::none`] removes it. Set it
+    /// before traffic flows, as with [`InProcNet::set_shape`]. Call within a
+    /// tokio runtime.
+    pub fn set_node_link(
+        &self,
+        node: &Name,
+        side: NodeLink,
+        shape: LinkShape,
+    ) -> Result<(), BusError> {
+        shape.validate()?;
+        let mut st = lock(&self.state);
+        let (links, tag) = match side {
+            NodeLink::Uplink => (&mut st.uplinks, "uplink"),
+            NodeLink::Downlink => (&mut st.downlinks, "downlink"),
+        };
+        if shape.is_none() {
+            links.remove(node);
+        } else {
+            let shaper = Shaper::new(shape, seed((node, tag)), Duration::ZERO);
+            links.insert(node.clone(), shared(shaper));
+        }
+        st.refresh(|from, to| match side {
+            NodeLink::Uplink => from == node,
+            NodeLink::Downlink => to == node,
+        });
         Ok(())
     }
 

@@ -6,8 +6,9 @@
 //!
 //! - same node: straight into its mailbox;
 //! - another node of an [`InProcNet`]: encoded (so the wire limits hold),
-//!   optionally shaped (latency, jitter, bandwidth, loss) on tokio's clock,
-//!   then delivered;
+//!   optionally shaped (latency, jitter, bandwidth, loss) on tokio's clock
+//!   per pair of nodes and per node's shared uplink and downlink, then
+//!   delivered;
 //! - another node over QUIC ([`quic::QuicTransport`]): mutual TLS with the
 //!   cluster CA ([`certs`]), a control stream per direction, a stream of its
 //!   own for each bulk message; a UDP relay ([`relay`]) shapes such links.
@@ -26,5 +27,5 @@ pub mod shaping;
 
 pub use bus::{ActorRef, Bus, BusError, Delivery, Mailbox, SendError};
 pub use dray_protocol::{Address, Message, Name, Role};
-pub use inproc::InProcNet;
+pub use inproc::{InProcNet, NodeLink};
 pub use shaping::LinkShape;

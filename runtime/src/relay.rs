@@ -4,9 +4,12 @@
 //! retransmission are what copes (this machine's kernel has no netem).
 //!
 //! Each client source address gets its own upstream socket, so the node sees
-//! one distinct peer per client, as without the relay.
+//! one distinct peer per client, as without the relay. Each session's
+//! datagrams cross a link of the session's own and then, where given, a
+//! [`SharedShaper`] common to every session (and to every relay given the
+//! same one): a node's shared uplink or downlink.
 
-use crate::shaping::{LinkShape, Shaper, Verdict};
+use crate::shaping::{shared, LinkShape, Path, Shaper, SharedShaper, Verdict};
 use std::collections::HashMap;
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::Relaxed};
@@ -42,6 +45,33 @@ const QUEUE_DATAGRAMS: usize = 65_536;
 /// buffer): 50 ms, or twice the latency when that is longer.
 fn queue_limit(shape: &LinkShape) -> Duration {
     (2 * shape.latency).max(Duration::from_millis(50))
+}
+
+/// A link shared by several relays or sessions (a node's uplink or
+/// downlink), with the relay's queue limit for `shape`.
+pub fn shared_link(shape: LinkShape, seed: u64) -> SharedShaper {
+    shared(Shaper::new(shape, seed, queue_limit(&shape)))
+}
+
+/// How a relay shapes its two directions.
+#[derive(Clone, Debug, Default)]
+pub struct RelayShaping {
+    /// Towards the node, a link per session.
+    pub to_upstream: LinkShape,
+    /// Towards the client, a link per session.
+    pub to_client: LinkShape,
+    /// Towards the node, after the session's link: one shared link.
+    pub shared_to_upstream: Option<SharedShaper>,
+    /// Towards the client, after the session's link: one shared link.
+    pub shared_to_client: Option<SharedShaper>,
+}
+
+impl RelayShaping {
+    /// The hops of one new session's direction.
+    fn session_path(own: LinkShape, shared_link: &Option<SharedShaper>, seed: u64) -> Path {
+        let own = (!own.is_none()).then(|| shared(Shaper::new(own, seed, queue_limit(&own))));
+        Path::new(own.into_iter().chain(shared_link.clone()).collect())
+    }
 }
 
 /// Datagram counts of a relay, both directions together.
@@ -80,20 +110,27 @@ impl UdpRelay {
         to_upstream: LinkShape,
         to_client: LinkShape,
     ) -> std::io::Result<UdpRelay> {
+        let shaping = RelayShaping {
+            to_upstream,
+            to_client,
+            ..RelayShaping::default()
+        };
+        UdpRelay::start_shaped(listen, upstream, shaping).await
+    }
+
+    /// Listens on `listen` and forwards to `upstream`, shaped by `shaping`.
+    pub async fn start_shaped(
+        listen: SocketAddr,
+        upstream: SocketAddr,
+        shaping: RelayShaping,
+    ) -> std::io::Result<UdpRelay> {
         let front = Arc::new(bind_udp(listen)?);
         let local = front.local_addr()?;
         let (stop, stop_rx) = watch::channel(false);
         let counters = Arc::new(Counters::default());
         let span = info_span!("udp_relay", %local, %upstream);
         tokio::spawn(
-            front_loop(
-                front,
-                upstream,
-                [to_upstream, to_client],
-                counters.clone(),
-                stop_rx,
-            )
-            .instrument(span),
+            front_loop(front, upstream, shaping, counters.clone(), stop_rx).instrument(span),
         );
         Ok(UdpRelay {
             local,
@@ -133,15 +170,14 @@ impl Drop for UdpRelay {
 /// One shaped direction: decides each datagram's fate and hands it to a
 /// task that sends it at its time.
 struct Direction {
-    shaper: std::sync::Mutex<Shaper>,
+    path: Path,
     tx: mpsc::Sender<(Instant, Vec<u8>)>,
     counters: Arc<Counters>,
 }
 
 impl Direction {
     fn new(
-        shape: LinkShape,
-        seed: u64,
+        path: Path,
         sock: Arc<UdpSocket>,
         to: Option<SocketAddr>,
         counters: Arc<Counters>,
@@ -170,11 +206,7 @@ impl Direction {
             }
             .in_current_span(),
         );
-        Direction {
-            shaper: std::sync::Mutex::new(Shaper::new(shape, seed, queue_limit(&shape))),
-            tx,
-            counters,
-        }
+        Direction { path, tx, counters }
     }
 
     fn push(&self, pkt: &[u8]) {
@@ -182,12 +214,7 @@ impl Direction {
             self.counters.lost.fetch_add(1, Relaxed);
             return;
         }
-        let verdict = self
-            .shaper
-            .lock()
-            .unwrap_or_else(|p| p.into_inner())
-            .datagram(pkt.len());
-        match verdict {
+        match self.path.datagram(pkt.len()) {
             Verdict::At(at) => {
                 if self.tx.try_send((at, pkt.to_vec())).is_err() {
                     self.counters.overflowed.fetch_add(1, Relaxed);
@@ -208,7 +235,7 @@ impl Direction {
 async fn front_loop(
     front: Arc<UdpSocket>,
     upstream: SocketAddr,
-    [to_upstream, to_client]: [LinkShape; 2],
+    shaping: RelayShaping,
     counters: Arc<Counters>,
     mut stop: watch::Receiver<bool>,
 ) {
@@ -236,16 +263,22 @@ async fn front_loop(
                 };
                 seed += 2;
                 let up = Arc::new(Direction::new(
-                    to_upstream,
-                    seed,
+                    RelayShaping::session_path(
+                        shaping.to_upstream,
+                        &shaping.shared_to_upstream,
+                        seed,
+                    ),
                     back.clone(),
                     None,
                     counters.clone(),
                     stop.clone(),
                 ));
                 let down = Direction::new(
-                    to_client,
-                    seed + 1,
+                    RelayShaping::session_path(
+                        shaping.to_client,
+                        &shaping.shared_to_client,
+                        seed + 1,
+                    ),
                     front.clone(),
                     Some(client),
                     counters.clone(),

@@ -2,8 +2,11 @@
 //!
 //! [`Shaper`] turns a message (or datagram) size into a delivery instant; the
 //! in-process transport uses it per message on tokio's clock (paused in
-//! tests), the UDP relay per datagram.
+//! tests), the UDP relay per datagram. A [`Path`] chains shapers: a node's
+//! uplink, the pair's link and the receiver's downlink, where the node links
+//! are [`SharedShaper`]s that every connection of that node crosses.
 
+use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Duration;
 use tokio::time::Instant;
 
@@ -164,14 +167,20 @@ impl Shaper {
     /// a "lost" one is retransmitted one round trip later. Nothing overtakes
     /// an earlier message of the same lane.
     pub fn reliable(&mut self, bytes: usize, lane: Lane) -> Instant {
-        let now = Instant::now();
+        self.reliable_from(Instant::now(), bytes, lane)
+    }
+
+    /// As [`Shaper::reliable`] for a message that reaches this link at
+    /// `ready` (not before now), e.g. when it leaves the previous hop.
+    pub fn reliable_from(&mut self, ready: Instant, bytes: usize, lane: Lane) -> Instant {
+        let ready = ready.max(Instant::now());
         let i = lane as usize;
         let tx = self.shape.transmission_time(bytes);
-        let start = self.free_at[i].max(now);
+        let start = self.free_at[i].max(ready);
         self.free_at[i] = start + tx;
         if lane == Lane::Control {
             // Control bytes use the bandwidth the bulk lane would have had.
-            self.free_at[1] = self.free_at[1].max(now) + tx;
+            self.free_at[1] = self.free_at[1].max(ready) + tx;
         }
         let mut at = self.free_at[i] + self.shape.latency + self.jitter();
         if self.shape.loss > 0.0 && self.rng.unit() < self.shape.loss {
@@ -186,17 +195,81 @@ impl Shaper {
     /// A datagram of `bytes` arriving now: dropped with the loss probability
     /// or when the queue is full, else paced at the bandwidth and delayed.
     pub fn datagram(&mut self, bytes: usize) -> Verdict {
-        let now = Instant::now();
+        self.datagram_from(Instant::now(), bytes)
+    }
+
+    /// As [`Shaper::datagram`] for a datagram that reaches this link at
+    /// `ready` (not before now).
+    pub fn datagram_from(&mut self, ready: Instant, bytes: usize) -> Verdict {
+        let ready = ready.max(Instant::now());
         if self.shape.loss > 0.0 && self.rng.unit() < self.shape.loss {
             return Verdict::Drop;
         }
-        let start = self.free_at[0].max(now);
-        if start > now + self.queue_limit {
+        let start = self.free_at[0].max(ready);
+        if start > ready + self.queue_limit {
             return Verdict::Overflow;
         }
         self.free_at[0] = start + self.shape.transmission_time(bytes);
         let at = (self.free_at[0] + self.shape.latency + self.jitter()).max(self.last_delivery[0]);
         self.last_delivery[0] = at;
+        Verdict::At(at)
+    }
+}
+
+/// A shaper that several links share: a node's uplink or downlink, the one
+/// bottleneck that every connection of that node crosses.
+pub type SharedShaper = Arc<Mutex<Shaper>>;
+
+/// A new [`SharedShaper`].
+pub fn shared(shaper: Shaper) -> SharedShaper {
+    Arc::new(Mutex::new(shaper))
+}
+
+fn lock(s: &SharedShaper) -> MutexGuard<'_, Shaper> {
+    s.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+/// The shaped hops a message or datagram crosses, in order (e.g. the
+/// sender's uplink, the pair's link, the receiver's downlink). Each hop is
+/// store-and-forward: it takes the message when the previous hop delivers
+/// it. Times are reserved when the message is sent, so each hop serves its
+/// messages in the order they were sent (a FIFO link).
+#[derive(Clone, Debug, Default)]
+pub struct Path {
+    hops: Vec<SharedShaper>,
+}
+
+impl Path {
+    /// A path through `hops`, in order; no hops: unshaped.
+    pub fn new(hops: Vec<SharedShaper>) -> Self {
+        Path { hops }
+    }
+
+    /// Whether nothing on the path shapes anything.
+    pub fn is_unshaped(&self) -> bool {
+        self.hops.is_empty()
+    }
+
+    /// When a reliable message of `bytes` sent now on `lane` arrives.
+    pub fn reliable(&self, bytes: usize, lane: Lane) -> Instant {
+        let mut at = Instant::now();
+        for hop in &self.hops {
+            at = lock(hop).reliable_from(at, bytes, lane);
+        }
+        at
+    }
+
+    /// What happens to a datagram of `bytes` arriving now: the first hop
+    /// that drops it decides; otherwise it arrives when the last one
+    /// delivers it.
+    pub fn datagram(&self, bytes: usize) -> Verdict {
+        let mut at = Instant::now();
+        for hop in &self.hops {
+            match lock(hop).datagram_from(at, bytes) {
+                Verdict::At(t) => at = t,
+                dropped => return dropped,
+            }
+        }
         Verdict::At(at)
     }
 }

@@ -9,11 +9,12 @@ mod common;
 
 use common::*;
 use dray_protocol::{
-    encode_envelope, Address, Envelope, Handshake, Hello, Message, Ping, Role, PROTOCOL_VERSION,
+    encode_envelope, Address, Blob, Envelope, FetchVoxel, Handshake, Hello, Message, Ping, Role,
+    VoxelLoaded, PROTOCOL_VERSION,
 };
 use dray_runtime::certs::{init_cluster, ClusterCa, NodeIdentity};
 use dray_runtime::quic::{QuicTransport, STREAM_BULK, STREAM_CONTROL};
-use dray_runtime::relay::UdpRelay;
+use dray_runtime::relay::{shared_link, RelayShaping, UdpRelay};
 use dray_runtime::{Bus, Delivery, LinkShape};
 use quinn::crypto::rustls::QuicClientConfig;
 use quinn::{Connection, Endpoint};
@@ -505,4 +506,80 @@ async fn a_silent_partition_is_detected_and_healed() {
     ping_pong(&a, &b, 4).await;
     ta.shutdown().await;
     tb.shutdown().await;
+}
+
+/// A store's uplink over QUIC: one relay in front of the store whose answers
+/// cross one shared link, so four clients together get no more than that
+/// link's bandwidth. Only the lower bound on the time is asserted (no
+/// machine can beat it); without sharing it would take a quarter of it.
+#[tokio::test]
+async fn clients_share_a_store_uplink_through_its_relay() {
+    const CLIENTS: usize = 4;
+    const PER_CLIENT: u32 = 6;
+    const VOXEL: usize = 64 << 10;
+    const CAP_BPS: u64 = 20_000_000;
+    let ca = ClusterCa::generate().unwrap();
+    let (s, ts) = node(&ca.issue(&name("store-0")).unwrap(), Role::Store).await;
+    let uplink = LinkShape {
+        latency: Duration::from_millis(2),
+        bandwidth_bps: Some(CAP_BPS),
+        ..LinkShape::none()
+    };
+    let shaping = RelayShaping {
+        shared_to_client: Some(shared_link(uplink, 1)),
+        ..RelayShaping::default()
+    };
+    let relay = UdpRelay::start_shaped(loopback(), ts.local_addr().unwrap(), shaping)
+        .await
+        .unwrap();
+    let mut store = s.mailbox(name("store"), 256).unwrap();
+    let store_addr = store.address().clone();
+    tokio::spawn(async move {
+        while let Some((from, msg)) = store.recv_message().await {
+            if let Message::FetchVoxel(FetchVoxel { id }) = msg {
+                let data = Blob(vec![id as u8; VOXEL]);
+                let _ = store
+                    .send(&from, Message::VoxelLoaded(VoxelLoaded { id, data }))
+                    .await;
+            }
+        }
+    });
+    let mut clients = Vec::new();
+    for i in 0..CLIENTS {
+        let id = ca.issue(&name(&format!("client-{i}"))).unwrap();
+        let (c, tc) = node(&id, Role::Client).await;
+        tc.connect(name("store-0"), relay.local_addr());
+        guard(c.wait_for_peer(&name("store-0"))).await;
+        clients.push((c, tc));
+    }
+    let t0 = std::time::Instant::now();
+    let mut pulls = Vec::new();
+    for (c, _) in &clients {
+        let mut mb = c.mailbox(name("loader"), 64).unwrap();
+        let to = store_addr.clone();
+        pulls.push(tokio::spawn(async move {
+            for id in 0..PER_CLIENT {
+                let ask = Message::FetchVoxel(FetchVoxel { id });
+                mb.send(&to, ask).await.unwrap();
+            }
+            for _ in 0..PER_CLIENT {
+                let (_, msg) = next_message(&mut mb).await;
+                assert!(matches!(msg, Message::VoxelLoaded(_)));
+            }
+        }));
+    }
+    for p in pulls {
+        guard(p).await.unwrap();
+    }
+    let took = t0.elapsed();
+    let payload_bits = (CLIENTS * PER_CLIENT as usize * VOXEL * 8) as f64;
+    let least = Duration::from_secs_f64(payload_bits / CAP_BPS as f64);
+    assert!(
+        took >= least,
+        "{took:?}: faster than one shared {CAP_BPS} bit/s uplink allows ({least:?})"
+    );
+    for (_, tc) in &clients {
+        tc.shutdown().await;
+    }
+    ts.shutdown().await;
 }

@@ -72,6 +72,7 @@ pub fn start_store(
             database: db,
             shard,
             max_concurrent: 2,
+            disk: Default::default(),
         },
     ));
     (bus, h)
