@@ -151,6 +151,21 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Run an experiment file: every combination of its swept config keys,
+    /// `repeat` times; writes points.csv, frames.csv, plots and summary.md
+    /// (docs/experiments.md).
+    Experiment {
+        file: PathBuf,
+        /// The results directory (default: results/NAME/YYYYmmdd-HHMMSS).
+        #[arg(long, conflicts_with = "resume")]
+        out: Option<PathBuf>,
+        /// Each point once, on a tenth of the frames (at least 2).
+        #[arg(long)]
+        quick: bool,
+        /// Go on with the runs missing from this earlier results directory.
+        #[arg(long)]
+        resume: Option<PathBuf>,
+    },
     /// Write a camera path (TOML keyframes) that flies from outside a
     /// database's model to deep inside it.
     Walkthrough {
@@ -420,8 +435,15 @@ fn parse_copies(s: &str) -> Result<[u32; 3], String> {
 }
 
 fn main() -> ExitCode {
-    dray_runtime::logging::init("info");
-    match run(Cli::parse()) {
+    let cli = Cli::parse();
+    // An experiment runs many clusters in this process: their info lines
+    // would bury its progress (RUST_LOG still shows them).
+    let default_log = match cli.command {
+        Command::Experiment { .. } => "warn",
+        _ => "info",
+    };
+    dray_runtime::logging::init(default_log);
+    match run(cli) {
         Ok(code) => code,
         Err(e) => {
             eprintln!("error: {}", describe(&e));
@@ -624,6 +646,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
                         "misses": c.misses,
                         "fetched": c.fetched,
                         "bytes_fetched": c.bytes_fetched,
+                        "bytes_raw": c.bytes_raw,
                         "refetched": c.refetched,
                         "evicted": c.evicted,
                         "peak_cache_bytes": c.peak_cache_bytes,
@@ -632,6 +655,45 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 })
                 .collect();
             print_report(&summary, &[], json);
+        }
+        Command::Experiment {
+            file,
+            out,
+            quick,
+            resume,
+        } => {
+            // Most experiments stream voxels through cold caches (see
+            // allocator.rs); `cluster` nodes choose for themselves.
+            allocator::no_huge_pages();
+            let opts = dray_experiments::Options {
+                out,
+                resume,
+                quick,
+                dray: Some(std::env::current_exe().context("finding the dray binary")?),
+                ..dray_experiments::Options::default()
+            };
+            let report = dray_experiments::run(&file, &opts)?;
+            println!(
+                "{}: {} of {} runs done{}",
+                report.dir.display(),
+                report.runs_done + report.runs_resumed,
+                report.runs_total,
+                if report.runs_resumed > 0 {
+                    format!(" ({} by an earlier run)", report.runs_resumed)
+                } else {
+                    String::new()
+                }
+            );
+            if report.interrupted {
+                println!(
+                    "interrupted; go on with: dray experiment {}{} --resume {}",
+                    file.display(),
+                    if quick { " --quick" } else { "" },
+                    report.dir.display()
+                );
+                return Ok(ExitCode::from(130));
+            }
+            println!("summary: {}", report.dir.join("summary.md").display());
         }
         Command::Walkthrough { db, frames, out } => {
             let db = Database::open(&db)?;

@@ -277,3 +277,56 @@ fn logs_to_a_pipe_have_no_colour_codes() {
     assert!(quiet.status.success(), "{}", text(&quiet));
     assert!(!String::from_utf8_lossy(&quiet.stderr).contains("INFO"));
 }
+
+#[test]
+fn experiment_runs_a_file_and_names_a_bad_key() {
+    let dir = tempfile::tempdir().unwrap();
+    let tiny = Path::new(env!("CARGO_MANIFEST_DIR")).join("experiments/tiny.toml");
+    let out_dir = dir.path().join("out");
+    // From the temporary directory, so that the model cache
+    // (data/experiments/models) is made there.
+    let run = |args: &[&str]| {
+        Command::new(env!("CARGO_BIN_EXE_dray"))
+            .args(args)
+            .current_dir(dir.path())
+            .env("RUST_LOG", "warn")
+            .output()
+            .expect("run dray")
+    };
+    let out = run(&["experiment", s(&tiny), "--quick", "--out", s(&out_dir)]);
+    assert!(out.status.success(), "{}", text(&out));
+    assert!(text(&out).contains("4 of 4 runs done"), "{}", text(&out));
+    for file in [
+        "points.csv",
+        "frames.csv",
+        "summary.md",
+        "plot1-fps-by-latency_ms.png",
+    ] {
+        assert!(out_dir.join(file).is_file(), "no {file}");
+    }
+    assert!(dir
+        .path()
+        .join("data/experiments/models/plant-20000-seed3.vdb")
+        .is_dir());
+
+    let bad = dir.path().join("bad.toml");
+    std::fs::write(
+        &bad,
+        std::fs::read_to_string(&tiny)
+            .unwrap()
+            .replace("\"clients.threads\"", "\"clients.thread\"")
+            .replace(
+                "../config/",
+                &format!("{}/config/", env!("CARGO_MANIFEST_DIR")),
+            ),
+    )
+    .unwrap();
+    let out = run(&["experiment", s(&bad)]);
+    assert!(!out.status.success());
+    let msg = text(&out);
+    assert!(
+        msg.contains("bad.toml: [set] clients.thread: unknown field `thread`"),
+        "{msg}"
+    );
+    assert!(!msg.contains("panicked"), "{msg}");
+}

@@ -149,6 +149,8 @@ struct Pending {
 pub(crate) struct LoaderStats {
     pub fetched: u64,
     pub bytes_fetched: u64,
+    /// Decompressed bytes of the voxels fetched (the blobs' raw sizes).
+    pub bytes_raw: u64,
     pub refetched: u64,
     pub prefetched: u64,
     pub preloaded: u64,
@@ -419,6 +421,9 @@ impl Loader {
                 let _ = freed;
                 self.stats.fetched += 1;
                 self.stats.bytes_fetched += d.bytes;
+                if let Some(entry) = self.manifest.voxels.get(d.id as usize) {
+                    self.stats.bytes_raw += entry.raw_bytes;
+                }
                 if let Some(e) = self.ever_loaded.get_mut(d.id as usize) {
                     if std::mem::replace(e, true) {
                         self.stats.refetched += 1;

@@ -102,6 +102,8 @@ pub struct ClientSummary {
     pub fetched: u64,
     /// Compressed bytes of those voxels.
     pub bytes_fetched: u64,
+    /// The same voxels' bytes after decompression (the blobs' raw sizes).
+    pub bytes_raw: u64,
     /// Voxels fetched again after they had been evicted.
     pub refetched: u64,
     /// Voxels evicted from the cache.
@@ -475,6 +477,7 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
     let s = &loader.stats;
     summary.fetched = s.fetched;
     summary.bytes_fetched = s.bytes_fetched;
+    summary.bytes_raw = s.bytes_raw;
     summary.refetched = s.refetched;
     summary.prefetched = s.prefetched;
     summary.preloaded = s.preloaded;

@@ -1,0 +1,402 @@
+//! The experiment file: its format, and every check that needs no run.
+//!
+//! ```toml
+//! name = "latency-hiding"
+//! config = "../config/examples/local.toml"   # relative to this file
+//! engine = "sim"                             # or "cluster"
+//! repeat = 3
+//! [model]  generate = "plant", triangles = 1_000_000, seed = 1   # or database = "PATH"
+//! [walk]   frames = 60, loops = 1, warm = false                  # or camera_path = "PATH"
+//! [set]    "clients.count" = 2
+//! [sweep]  "clients.miss_mode" = ["suspend", "block"]
+//! [[plot]] x = "…", y = "fps", series = "…"
+//! ```
+//!
+//! Every key is documented in `docs/experiments.md`.
+
+use crate::error::ExperimentError;
+use crate::measure::MEASURES;
+use dray_actors::display::CameraPath;
+use serde::Deserialize;
+use std::path::{Path, PathBuf};
+
+/// How the nodes of a run are started.
+#[derive(Clone, Copy, Debug, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "lowercase")]
+pub enum Engine {
+    /// Every node in this process over the in-process transport (`dray sim`).
+    Sim,
+    /// Every node as a process over QUIC (`dray cluster`).
+    Cluster,
+}
+
+impl Engine {
+    /// The name the file uses.
+    pub fn name(self) -> &'static str {
+        match self {
+            Engine::Sim => "sim",
+            Engine::Cluster => "cluster",
+        }
+    }
+}
+
+/// The model every run renders.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Model {
+    /// A voxel database made by `dray preprocess`.
+    Database(PathBuf),
+    /// A generated plant, preprocessed once into the model cache.
+    Plant {
+        /// Triangles of the plant.
+        triangles: u64,
+        /// The generator's seed.
+        seed: u64,
+    },
+}
+
+/// Where the camera goes: a path file, or a generated walkthrough.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Route {
+    /// A camera path file.
+    File(PathBuf),
+    /// The walkthrough of `dray walkthrough` with this many frames.
+    Frames(u32),
+}
+
+/// The camera path of every run.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Walk {
+    /// The path.
+    pub route: Route,
+    /// Times the path is flown.
+    pub loops: u32,
+    /// Only the last loop is measured.
+    pub warm: bool,
+}
+
+/// One `[[plot]]`.
+#[derive(Clone, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct Plot {
+    /// A swept key with numbers for values.
+    pub x: String,
+    /// A measured column.
+    pub y: String,
+    /// A swept key: one line per value.
+    pub series: Option<String>,
+}
+
+/// A checked experiment file.
+#[derive(Clone, Debug)]
+pub struct Experiment {
+    /// The file, as an absolute path.
+    pub file: PathBuf,
+    /// Names the results directory.
+    pub name: String,
+    /// One line for the summary.
+    pub description: String,
+    /// The base cluster config, as an absolute path.
+    pub config: PathBuf,
+    /// How nodes start.
+    pub engine: Engine,
+    /// Runs per point.
+    pub repeat: u32,
+    /// The model; none: the base config's `scene.database`.
+    pub model: Option<Model>,
+    /// The camera path; none: the base config's.
+    pub walk: Option<Walk>,
+    /// Fixed config overrides: dotted key and value, in key order.
+    pub set: Vec<(String, toml::Value)>,
+    /// Swept config keys and their values, in key order.
+    pub sweep: Vec<(String, Vec<toml::Value>)>,
+    /// The plots.
+    pub plots: Vec<Plot>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct File {
+    name: String,
+    #[serde(default)]
+    description: String,
+    config: PathBuf,
+    engine: Engine,
+    #[serde(default = "one")]
+    repeat: u32,
+    model: Option<ModelFile>,
+    walk: Option<WalkFile>,
+    #[serde(default)]
+    set: toml::Table,
+    #[serde(default)]
+    sweep: toml::Table,
+    #[serde(default)]
+    plot: Vec<Plot>,
+}
+
+fn one() -> u32 {
+    1
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ModelFile {
+    database: Option<PathBuf>,
+    generate: Option<String>,
+    triangles: Option<u64>,
+    seed: Option<u64>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct WalkFile {
+    camera_path: Option<PathBuf>,
+    frames: Option<u32>,
+    loops: Option<u32>,
+    warm: Option<bool>,
+}
+
+/// Most runs per point.
+const MAX_REPEAT: u32 = 1000;
+/// Most times a path is flown (the config's `render.loops` limit).
+const MAX_LOOPS: u32 = 1000;
+/// Most frames of a walkthrough (the camera path file's limit).
+const MAX_FRAMES: u32 = 100_000;
+
+impl Experiment {
+    /// Reads and checks an experiment file: every key, the model's
+    /// database or generator parameters, the camera path, the plots.
+    pub fn load(file: &Path) -> Result<Experiment, ExperimentError> {
+        let file = std::path::absolute(file).map_err(|e| ExperimentError::Unreadable {
+            file: file.to_path_buf(),
+            message: e.to_string(),
+        })?;
+        let text = std::fs::read_to_string(&file).map_err(|e| ExperimentError::Unreadable {
+            file: file.clone(),
+            message: e.to_string(),
+        })?;
+        let raw: File = toml::from_str(&text).map_err(|e| ExperimentError::Unreadable {
+            file: file.clone(),
+            message: e.to_string(),
+        })?;
+        let dir = file.parent().unwrap_or(Path::new("/")).to_path_buf();
+        let bad = |key: &str, problem: String| ExperimentError::invalid(&file, key, problem);
+
+        if raw.name.is_empty()
+            || !raw
+                .name
+                .chars()
+                .all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c))
+            || raw.name.starts_with('.')
+        {
+            return Err(bad(
+                "name",
+                format!(
+                    "{:?} must be letters, digits, '-', '_' or '.' (it names a directory)",
+                    raw.name
+                ),
+            ));
+        }
+        if !(1..=MAX_REPEAT).contains(&raw.repeat) {
+            return Err(bad(
+                "repeat",
+                format!("{} is not in 1..={MAX_REPEAT}", raw.repeat),
+            ));
+        }
+        let config = dir.join(&raw.config);
+        if !config.is_file() {
+            return Err(bad("config", format!("{}: no such file", config.display())));
+        }
+        let model = raw.model.map(|m| model(&file, &dir, m)).transpose()?;
+        let walk = raw.walk.map(|w| walk(&file, &dir, w)).transpose()?;
+
+        let set = flatten(raw.set);
+        let mut sweep = Vec::new();
+        for (key, values) in flatten(raw.sweep) {
+            let label = format!("[sweep] {key}");
+            let toml::Value::Array(values) = values else {
+                return Err(bad(&label, "must be a list of values".into()));
+            };
+            if values.is_empty() {
+                return Err(bad(&label, "the list is empty".into()));
+            }
+            if set.iter().any(|(k, _)| *k == key) {
+                return Err(bad(&label, "is also in [set]".into()));
+            }
+            sweep.push((key, values));
+        }
+        for (i, p) in raw.plot.iter().enumerate() {
+            check_plot(&file, i, p, &sweep)?;
+        }
+        Ok(Experiment {
+            name: raw.name,
+            description: raw.description,
+            config,
+            engine: raw.engine,
+            repeat: raw.repeat,
+            model,
+            walk,
+            set,
+            sweep,
+            plots: raw.plot,
+            file,
+        })
+    }
+
+    /// The swept keys, in order.
+    pub fn sweep_keys(&self) -> Vec<&str> {
+        self.sweep.iter().map(|(k, _)| k.as_str()).collect()
+    }
+}
+
+fn model(file: &Path, dir: &Path, m: ModelFile) -> Result<Model, ExperimentError> {
+    let bad = |key: &str, problem: String| ExperimentError::invalid(file, key, problem);
+    match (m.database, m.generate) {
+        (Some(db), None) => {
+            if m.triangles.is_some() || m.seed.is_some() {
+                return Err(bad(
+                    "model.database",
+                    "triangles and seed go with generate, not with database".into(),
+                ));
+            }
+            let db = dir.join(db);
+            dray_scene::db::Database::open(&db)
+                .map_err(|e| bad("model.database", e.to_string()))?;
+            Ok(Model::Database(db))
+        }
+        (None, Some(kind)) => {
+            if kind != "plant" {
+                return Err(bad(
+                    "model.generate",
+                    format!("{kind:?} is not a generator (the one there is: \"plant\")"),
+                ));
+            }
+            let Some(triangles) = m.triangles else {
+                return Err(bad("model.triangles", "is required with generate".into()));
+            };
+            let range = dray_scene::generate::MIN_TRIANGLES..=dray_scene::generate::MAX_TRIANGLES;
+            if !range.contains(&triangles) {
+                return Err(bad(
+                    "model.triangles",
+                    format!("{triangles} is not in {}..={}", range.start(), range.end()),
+                ));
+            }
+            Ok(Model::Plant {
+                triangles,
+                seed: m.seed.unwrap_or(1),
+            })
+        }
+        _ => Err(bad(
+            "model",
+            "needs either database = \"PATH\" or generate = \"plant\"".into(),
+        )),
+    }
+}
+
+fn walk(file: &Path, dir: &Path, w: WalkFile) -> Result<Walk, ExperimentError> {
+    let bad = |key: &str, problem: String| ExperimentError::invalid(file, key, problem);
+    let route = match (w.camera_path, w.frames) {
+        (Some(p), None) => {
+            let p = dir.join(p);
+            CameraPath::load(&p).map_err(|e| bad("walk.camera_path", e.to_string()))?;
+            Route::File(p)
+        }
+        (None, Some(n)) if (1..=MAX_FRAMES).contains(&n) => Route::Frames(n),
+        (None, Some(n)) => {
+            return Err(bad(
+                "walk.frames",
+                format!("{n} is not in 1..={MAX_FRAMES}"),
+            ))
+        }
+        _ => {
+            return Err(bad(
+                "walk",
+                "needs either camera_path = \"PATH\" or frames = N".into(),
+            ))
+        }
+    };
+    let loops = w.loops.unwrap_or(1);
+    if !(1..=MAX_LOOPS).contains(&loops) {
+        return Err(bad(
+            "walk.loops",
+            format!("{loops} is not in 1..={MAX_LOOPS}"),
+        ));
+    }
+    Ok(Walk {
+        route,
+        loops,
+        warm: w.warm.unwrap_or(false),
+    })
+}
+
+fn check_plot(
+    file: &Path,
+    i: usize,
+    p: &Plot,
+    sweep: &[(String, Vec<toml::Value>)],
+) -> Result<(), ExperimentError> {
+    let bad = |key: &str, problem: String| {
+        ExperimentError::invalid(file, format!("plot[{i}].{key}"), problem)
+    };
+    let swept = sweep
+        .iter()
+        .map(|(k, _)| k.as_str())
+        .collect::<Vec<_>>()
+        .join(", ");
+    let Some((_, xs)) = sweep.iter().find(|(k, _)| *k == p.x) else {
+        return Err(bad(
+            "x",
+            format!("{:?} is not a swept key (swept: {swept})", p.x),
+        ));
+    };
+    if let Some(v) = xs.iter().find(|v| number(v).is_none()) {
+        return Err(bad(
+            "x",
+            format!("{:?} sweeps {v}, not a number: x must be numeric", p.x),
+        ));
+    }
+    if !MEASURES.iter().any(|m| m.name == p.y) {
+        let names: Vec<&str> = MEASURES.iter().map(|m| m.name).collect();
+        return Err(bad(
+            "y",
+            format!("{:?} is not a measured column ({})", p.y, names.join(", ")),
+        ));
+    }
+    if let Some(s) = &p.series {
+        if *s == p.x || !sweep.iter().any(|(k, _)| k == s) {
+            return Err(bad(
+                "series",
+                format!("{s:?} is not a swept key other than x (swept: {swept})"),
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// A TOML number as f64.
+pub(crate) fn number(v: &toml::Value) -> Option<f64> {
+    match v {
+        toml::Value::Integer(i) => Some(*i as f64),
+        toml::Value::Float(f) => Some(*f),
+        _ => None,
+    }
+}
+
+/// `[set]` and `[sweep]` accept `"clients.count" = 2` and the nested
+/// `clients.count = 2` (or `[set.clients]`) alike: both become the dotted
+/// key `clients.count`.
+fn flatten(table: toml::Table) -> Vec<(String, toml::Value)> {
+    let mut out = Vec::new();
+    for (key, value) in table {
+        match value {
+            toml::Value::Table(t) => {
+                out.extend(
+                    flatten(t)
+                        .into_iter()
+                        .map(|(k, v)| (format!("{key}.{k}"), v)),
+                );
+            }
+            v => out.push((key, v)),
+        }
+    }
+    out
+}

@@ -1,0 +1,196 @@
+//! `summary.md`: what ran, on which machine and commit, the medians of
+//! every point, and the plots.
+
+use crate::error::ExperimentError;
+use crate::measure::{format_value, spread, MEASURES};
+use crate::plot::PlotFiles;
+use crate::points::{cell, Point};
+use crate::results::{write_atomic, PointRow, FRAMES_CSV, POINTS_CSV};
+use crate::spec::{Experiment, Model, Route};
+use std::path::Path;
+use std::process::Command;
+
+/// What the summary tells besides the experiment file and the rows.
+pub(crate) struct RunInfo<'a> {
+    pub quick: bool,
+    pub repeats: u32,
+    pub frames: Option<u32>,
+    pub database: &'a Path,
+    pub started: String,
+    pub finished: String,
+    pub runs_total: usize,
+    pub interrupted: bool,
+}
+
+/// The CPU model, cores and the kernel's instruction set.
+fn machine() -> String {
+    let cpu = std::fs::read_to_string("/proc/cpuinfo")
+        .ok()
+        .and_then(|text| {
+            text.lines()
+                .find(|l| l.starts_with("model name"))
+                .and_then(|l| l.split_once(':'))
+                .map(|(_, v)| v.trim().to_string())
+        })
+        .unwrap_or_else(|| "unknown CPU".into());
+    let cores = std::thread::available_parallelism().map_or(0, |n| n.get());
+    let isa = dray_trace::render::Isa::detect().name();
+    format!("{cpu}, {cores} cores, kernel ISA {isa}")
+}
+
+/// `git rev-parse --short HEAD` where the experiment file is, marked when
+/// the work tree has changes; "unknown" outside a repository.
+fn commit(dir: &Path) -> String {
+    let git = |args: &[&str]| {
+        Command::new("git")
+            .args(args)
+            .current_dir(dir)
+            .output()
+            .ok()
+            .filter(|o| o.status.success())
+            .map(|o| String::from_utf8_lossy(&o.stdout).trim().to_string())
+    };
+    match git(&["rev-parse", "--short", "HEAD"]) {
+        Some(hash) => match git(&["status", "--porcelain", "--untracked-files=no"]) {
+            Some(changes) if !changes.is_empty() => format!("{hash} (with uncommitted changes)"),
+            _ => hash,
+        },
+        None => "unknown".into(),
+    }
+}
+
+fn table_cell(s: &str) -> String {
+    s.replace('|', "\\|")
+}
+
+/// Writes `dir/summary.md`.
+pub(crate) fn write(
+    dir: &Path,
+    exp: &Experiment,
+    info: &RunInfo,
+    points: &[Point],
+    rows: &[PointRow],
+    plots: &[PlotFiles],
+) -> Result<(), ExperimentError> {
+    let mut s = format!("# {}\n\n", exp.name);
+    if !exp.description.is_empty() {
+        s += &format!("{}\n\n", exp.description);
+    }
+    let model = match &exp.model {
+        Some(Model::Plant { triangles, seed }) => {
+            format!("generated plant, {triangles} triangles, seed {seed}")
+        }
+        Some(Model::Database(_)) | None => "database".into(),
+    };
+    let walk = match exp.walk.as_ref().map(|w| (&w.route, w.loops, w.warm)) {
+        Some((Route::Frames(_), loops, warm)) => format!(
+            "walkthrough, {loops} loop(s){}",
+            if warm { ", last loop measured" } else { "" }
+        ),
+        Some((Route::File(p), loops, warm)) => format!(
+            "{}, {loops} loop(s){}",
+            p.display(),
+            if warm { ", last loop measured" } else { "" }
+        ),
+        None => "the base config's camera".into(),
+    };
+    let frames = info
+        .frames
+        .map_or(String::new(), |f| format!(" of {f} frames"));
+    s += &format!(
+        "| | |\n|---|---|\n\
+         | experiment | `{}` |\n\
+         | base config | `{}` |\n\
+         | engine | {} |\n\
+         | model | {model} (`{}`) |\n\
+         | walk | {walk}{frames} |\n\
+         | runs | {} of {} ({} per point{}){} |\n\
+         | started | {} |\n\
+         | finished | {} |\n\
+         | machine | {} |\n\
+         | commit | {} |\n\n",
+        exp.file.display(),
+        exp.config.display(),
+        exp.engine.name(),
+        info.database.display(),
+        rows.len(),
+        info.runs_total,
+        info.repeats,
+        if info.quick { ", --quick" } else { "" },
+        if info.interrupted {
+            ", interrupted"
+        } else {
+            ""
+        },
+        info.started,
+        info.finished,
+        machine(),
+        commit(exp.file.parent().unwrap_or(Path::new("."))),
+    );
+    if !exp.set.is_empty() {
+        s += "Fixed (`[set]`): ";
+        let parts: Vec<String> = exp
+            .set
+            .iter()
+            .map(|(k, v)| format!("`{k} = {v}`"))
+            .collect();
+        s += &parts.join(", ");
+        s += "\n\n";
+    }
+    if !exp.sweep.is_empty() {
+        s += "Swept (`[sweep]`, every combination): ";
+        let parts: Vec<String> = exp
+            .sweep
+            .iter()
+            .map(|(k, vs)| {
+                let vs: Vec<String> = vs.iter().map(cell).collect();
+                format!("`{k}` = {}", vs.join(", "))
+            })
+            .collect();
+        s += &parts.join("; ");
+        s += "\n\n";
+    }
+
+    s += "## Medians\n\nThe median over the repeats of each point; `runs` is how many there are.\n\n";
+    let mut header: Vec<String> = exp.sweep_keys().iter().map(|k| format!("`{k}`")).collect();
+    header.push("runs".into());
+    header.extend(MEASURES.iter().map(|m| format!("{} ({})", m.name, m.unit)));
+    s += &format!(
+        "| {} |\n|{}\n",
+        header.join(" | "),
+        "---|".repeat(header.len())
+    );
+    for p in points {
+        let cells = p.cells();
+        let mine: Vec<&PointRow> = rows.iter().filter(|r| r.cells == cells).collect();
+        let mut line: Vec<String> = cells.iter().map(|c| table_cell(c)).collect();
+        line.push(mine.len().to_string());
+        for (i, _) in MEASURES.iter().enumerate() {
+            let values: Vec<f64> = mine.iter().filter_map(|r| r.values[i]).collect();
+            line.push(format_value(
+                spread(&values).map(|(median, _, _)| round3(median)),
+            ));
+        }
+        s += &format!("| {} |\n", line.join(" | "));
+    }
+    s += &format!(
+        "\nEvery run: [`{POINTS_CSV}`]({POINTS_CSV}); every frame: [`{FRAMES_CSV}`]({FRAMES_CSV}); \
+         each run's config and `metrics.csv`: `runs/`.\n"
+    );
+    if !plots.is_empty() {
+        s += "\n## Plots\n\nThe line joins the medians; the bars span the smallest to the largest run.\n\n";
+        for p in plots {
+            s += &format!("![{}]({})\n\n[SVG]({})\n\n", p.title, p.png, p.svg);
+        }
+    }
+    write_atomic(&dir.join("summary.md"), s.as_bytes())
+}
+
+/// Three significant digits, enough for a table read by people.
+fn round3(v: f64) -> f64 {
+    if v == 0.0 || !v.is_finite() {
+        return v;
+    }
+    let scale = 10f64.powi(2 - v.abs().log10().floor() as i32);
+    (v * scale).round() / scale
+}
