@@ -216,6 +216,7 @@ impl Cluster {
             time_us: 1000,
             misses: 2,
             bytes_fetched: 2000,
+            bytes_raw: 6000,
             voxels_touched: 8,
             stall_us: 20,
             clients: BoundedVec::new(clients).unwrap(),
@@ -351,6 +352,7 @@ async fn display_assembles_frames_from_out_of_order_tiles_and_writes_files() {
         assert_eq!(row[col("tiles")], "6");
         assert_eq!(row[col("reassigned")], "1");
         assert_eq!(row[col("bytes_fetched")], "2000");
+        assert_eq!(row[col("bytes_raw")], "6000");
         assert_eq!(row[col("misses")], "2");
         assert_eq!(row[col("voxels_touched")], "8");
         assert_eq!(row[col("cache_hit_rate")].parse::<f64>().unwrap(), 0.75);

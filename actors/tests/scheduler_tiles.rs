@@ -104,6 +104,7 @@ fn stats_for(tile: &TileRect, cost: u64, misses: u32) -> TileStats {
         voxels_touched: 2,
         misses,
         bytes_fetched: 10,
+        bytes_raw: 30,
         stall_us: 5,
     }
 }
@@ -421,6 +422,7 @@ async fn assigns_every_tile_once_and_double_buffers(affinity: bool) {
         assert_eq!(s.rays, u64::from(W * H));
         assert_eq!(s.misses, u64::from(n));
         assert_eq!(s.bytes_fetched, 10 * u64::from(n));
+        assert_eq!(s.bytes_raw, 30 * u64::from(n));
         assert_eq!(s.voxels_touched, 2 * u64::from(n));
         assert_eq!(s.stall_us, 5 * u64::from(n));
         assert!(s.time_us > 0);

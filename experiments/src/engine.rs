@@ -11,9 +11,6 @@ use std::time::Instant;
 pub(crate) struct RunOutput {
     /// The display's summary (`DisplaySummary::to_json`), with `frames`.
     pub summary: serde_json::Value,
-    /// Voxel bytes after decompression, summed over the clients, where
-    /// the engine reports them.
-    pub voxel_bytes_raw: Option<u64>,
     /// Wall time of the whole run, seconds.
     pub wall_s: f64,
 }
@@ -38,13 +35,12 @@ pub(crate) fn run(
     interrupted: &dyn Fn() -> bool,
 ) -> Result<RunOutput, RunFailure> {
     let start = Instant::now();
-    let (summary, voxel_bytes_raw) = match engine {
+    let summary = match engine {
         Engine::Sim => {
             let run = rt
                 .block_on(dray_actors::cluster::sim(cfg, &RunOptions::default()))
                 .map_err(|e| RunFailure::Failed(e.to_string()))?;
-            let raw = run.clients.iter().map(|c| c.bytes_raw).sum();
-            (run.display.to_json(), Some(raw))
+            run.display.to_json()
         }
         Engine::Cluster => {
             let dray = dray.ok_or_else(|| {
@@ -56,7 +52,7 @@ pub(crate) fn run(
                     dray_actors::launch::LaunchError::Interrupted => RunFailure::Interrupted,
                     e => RunFailure::Failed(e.to_string()),
                 })?;
-            (report.summary, None)
+            report.summary
         }
     };
     let wall_s = start.elapsed().as_secs_f64();
@@ -69,9 +65,5 @@ pub(crate) fn run(
             .unwrap_or("not every frame was shown");
         return Err(RunFailure::Failed(format!("the run stopped early: {why}")));
     }
-    Ok(RunOutput {
-        summary,
-        voxel_bytes_raw,
-        wall_s,
-    })
+    Ok(RunOutput { summary, wall_s })
 }

@@ -1,5 +1,6 @@
 //! What a run measured: the columns of `points.csv`, computed from the
-//! display's per-frame metrics (the same figures as its `metrics.csv`).
+//! display's per-frame metrics (the same figures as its `metrics.csv`),
+//! and the per-frame columns of `frames.csv` that plots can draw.
 
 use serde::Deserialize;
 
@@ -11,6 +12,7 @@ pub(crate) struct Frame {
     pub rays: u64,
     pub stall_ms: f64,
     pub bytes_fetched: u64,
+    pub bytes_raw: u64,
     pub misses: u64,
     pub voxels_touched: u64,
     pub reassigned: u32,
@@ -20,11 +22,6 @@ pub(crate) struct Frame {
 pub(crate) struct RunFigures<'a> {
     /// The measured frames: all, or with a warm walk the last loop's.
     pub measured: &'a [Frame],
-    /// Whether `measured` is every frame of the run.
-    pub whole_run: bool,
-    /// Voxel bytes after decompression over the whole run, where the
-    /// engine reports them (the in-process one does).
-    pub voxel_bytes_raw: Option<u64>,
     /// Wall time of the run, start-up included, seconds.
     pub wall_s: f64,
 }
@@ -110,12 +107,8 @@ pub const MEASURES: &[Measure] = &[
     Measure {
         name: "voxel_mb_raw",
         unit: "MB",
-        meaning: "the same voxels after decompression, 10^6 bytes (the paper's Figure 3 measure); engine \"sim\" only, and only when every frame is measured (empty otherwise)",
-        value: |r| {
-            r.voxel_bytes_raw
-                .filter(|_| r.whole_run)
-                .map(|b| b as f64 / 1e6)
-        },
+        meaning: "the same voxels after decompression, 10^6 bytes (the paper's Figure 3 measure)",
+        value: |r| Some(r.sum(|f| f.bytes_raw as f64) / 1e6),
     },
     Measure {
         name: "cache_hit_rate",
@@ -147,6 +140,142 @@ pub const MEASURES: &[Measure] = &[
 /// The measure called `name`.
 pub fn measure(name: &str) -> Option<&'static Measure> {
     MEASURES.iter().find(|m| m.name == name)
+}
+
+/// A column of `frames.csv` that a plot over the frames can draw: its
+/// name and unit.
+pub struct FrameColumn {
+    /// The column's name.
+    pub name: &'static str,
+    /// Its unit, for axis labels.
+    pub unit: &'static str,
+}
+
+/// The x of a plot over the frames: `frames.csv`'s frame number.
+pub const FRAME: &str = "frame";
+
+/// The numeric columns of `frames.csv`: the display's (`metrics.csv`),
+/// then those the runner derives from them ([`DERIVED`]).
+pub const FRAME_COLUMNS: &[FrameColumn] = &[
+    FrameColumn {
+        name: "frame_ms",
+        unit: "ms",
+    },
+    FrameColumn {
+        name: "fps",
+        unit: "frames/s",
+    },
+    FrameColumn {
+        name: "rays",
+        unit: "rays",
+    },
+    FrameColumn {
+        name: "mrays_per_s",
+        unit: "Mrays/s",
+    },
+    FrameColumn {
+        name: "tiles",
+        unit: "tiles",
+    },
+    FrameColumn {
+        name: "reassigned",
+        unit: "tiles",
+    },
+    FrameColumn {
+        name: "bytes_fetched",
+        unit: "bytes",
+    },
+    FrameColumn {
+        name: "bytes_raw",
+        unit: "bytes",
+    },
+    FrameColumn {
+        name: "misses",
+        unit: "misses",
+    },
+    FrameColumn {
+        name: "voxels_touched",
+        unit: "voxels",
+    },
+    FrameColumn {
+        name: "cache_hit_rate",
+        unit: "fraction",
+    },
+    FrameColumn {
+        name: "stall_ms",
+        unit: "ms",
+    },
+    FrameColumn {
+        name: "frame_ms_shared",
+        unit: "ms",
+    },
+    FrameColumn {
+        name: "fps_shared",
+        unit: "frames/s",
+    },
+    FrameColumn {
+        name: "voxel_mb_per_s",
+        unit: "MB/s",
+    },
+    FrameColumn {
+        name: "voxel_mb_raw_per_s",
+        unit: "MB/s",
+    },
+];
+
+/// The columns the runner derives per frame and adds to `frames.csv`, in
+/// the order of [`derived`]'s values.
+pub(crate) const DERIVED: [&str; 4] = [
+    "frame_ms_shared",
+    "fps_shared",
+    "voxel_mb_per_s",
+    "voxel_mb_raw_per_s",
+];
+
+/// A frame shown less than this after the one before finished while that
+/// one was still rendering, and was shown with it.
+const SAME_INSTANT_MS: f64 = 1.0;
+
+/// Per frame of a run, the [`DERIVED`] columns: its frame time with the
+/// time of frames shown at the same instant shared evenly among them
+/// (their own frame time is about zero, which would make their rates
+/// soar), 1000 over it, and its voxel MB (10^6 bytes) over it, compressed
+/// and after decompression. The shared times sum to the run's.
+pub(crate) fn derived(frames: &[Frame]) -> Vec<[f64; 4]> {
+    let mut shared = vec![0.0; frames.len()];
+    let mut start = 0;
+    while start < frames.len() {
+        let together = frames[start + 1..]
+            .iter()
+            .take_while(|f| f.frame_ms < SAME_INSTANT_MS)
+            .count();
+        let group = start..start + 1 + together;
+        let ms = frames[group.clone()]
+            .iter()
+            .map(|f| f.frame_ms)
+            .sum::<f64>()
+            / group.len() as f64;
+        shared[group.clone()].fill(ms);
+        start = group.end;
+    }
+    frames
+        .iter()
+        .zip(shared)
+        .map(|(f, ms)| {
+            let per_s = 1e3 / ms.max(1e-3);
+            [
+                ms,
+                per_s,
+                f.bytes_fetched as f64 / 1e6 * per_s,
+                f.bytes_raw as f64 / 1e6 * per_s,
+            ]
+        })
+        .collect()
+}
+
+/// The `frames.csv` column called `name`.
+pub fn frame_column(name: &str) -> Option<&'static FrameColumn> {
+    FRAME_COLUMNS.iter().find(|c| c.name == name)
 }
 
 /// Nearest-rank percentile of sorted values.
@@ -201,6 +330,7 @@ mod tests {
             rays: 1_000_000,
             stall_ms: 1.0,
             bytes_fetched: 500_000,
+            bytes_raw: 750_000,
             misses: 1,
             voxels_touched: 4,
             reassigned: 0,
@@ -212,8 +342,6 @@ mod tests {
         let frames: Vec<Frame> = [100.0, 200.0, 300.0, 400.0].map(frame).to_vec();
         let run = RunFigures {
             measured: &frames,
-            whole_run: true,
-            voxel_bytes_raw: Some(3_000_000),
             wall_s: 2.5,
         };
         let v = |name: &str| measure(name).unwrap().of(&run);
@@ -227,14 +355,30 @@ mod tests {
         assert_eq!(v("voxel_mb_raw"), Some(3.0));
         assert_eq!(v("cache_hit_rate"), Some(0.75));
         assert_eq!(v("wall_s"), Some(2.5));
+        // The last loop of a warm walk: its frames only.
         let warm = RunFigures {
-            whole_run: false,
+            measured: &frames[2..],
             ..run
         };
-        assert_eq!(measure("voxel_mb_raw").unwrap().of(&warm), None);
+        assert_eq!(measure("voxel_mb_raw").unwrap().of(&warm), Some(1.5));
+        assert_eq!(derived(&frames[..1]), [[100.0, 10.0, 5.0, 7.5]]);
+        // A frame shown with the one before shares its time.
+        let together = [frame(300.0), frame(0.0), frame(100.0)];
+        let shared: Vec<f64> = derived(&together).iter().map(|c| c[0]).collect();
+        assert_eq!(shared, [150.0, 150.0, 100.0]);
         assert_eq!(format_value(Some(0.5)), "0.5");
         assert_eq!(format_value(Some(12.0)), "12");
         assert_eq!(format_value(None), "");
         assert_eq!(spread(&[3.0, 1.0, 2.0, 10.0]), Some((2.5, 1.0, 10.0)));
+    }
+
+    #[test]
+    fn every_frames_column_has_a_unit() {
+        let display = dray_actors::display::CSV_HEADER
+            .split(',')
+            .filter(|c| *c != FRAME && *c != "tiles_per_client");
+        let columns: Vec<&str> = display.chain(DERIVED).collect();
+        let with_units: Vec<&str> = FRAME_COLUMNS.iter().map(|c| c.name).collect();
+        assert_eq!(columns, with_units);
     }
 }

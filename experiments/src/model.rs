@@ -59,25 +59,68 @@ pub(crate) fn quick_frames(frames: u32) -> u32 {
     (frames / 10).max(2).min(frames)
 }
 
-/// Writes the walk's camera path to `out` (the path file as given, or the
-/// walkthrough of the database; `quick` keeps a tenth of its frames) and
-/// returns its frame count.
-pub(crate) fn write_walk(
+/// The file of a run's camera path in the results directory `dir`:
+/// `walk.toml`, or for a point of a swept walkthrough
+/// (`swept_frames`, as the sweep gives them) `walks/frames-N.toml`.
+pub(crate) fn walk_file(dir: &Path, swept_frames: Option<u32>) -> PathBuf {
+    match swept_frames {
+        None => dir.join("walk.toml"),
+        Some(n) => dir.join(WALKS).join(format!("frames-{n}.toml")),
+    }
+}
+
+/// The directory of the walks of a swept walkthrough.
+const WALKS: &str = "walks";
+
+/// Writes the camera paths of the runs into the results directory `dir`
+/// (see [`walk_file`]): the path file as given, or the walkthrough of the
+/// database, one per value of `swept_frames` when the sweep gives its
+/// frames; `quick` keeps a tenth of the frames of each. Returns the
+/// frames of the path when every run flies the same one.
+pub(crate) fn write_walks(
     file: &Path,
     walk: &Walk,
+    swept_frames: &[u32],
     db: &Path,
+    quick: bool,
+    dir: &Path,
+) -> Result<Option<u32>, ExperimentError> {
+    match &walk.route {
+        Route::File(p) => {
+            let path = CameraPath::load(p)
+                .map_err(|e| ExperimentError::invalid(file, "walk.camera_path", e))?;
+            write_walk(file, path, quick, &walk_file(dir, None)).map(Some)
+        }
+        Route::Frames(n) => {
+            let path = walkthrough(file, db, *n)?;
+            write_walk(file, path, quick, &walk_file(dir, None)).map(Some)
+        }
+        Route::SweptFrames => {
+            let walks = dir.join(WALKS);
+            std::fs::create_dir_all(&walks).map_err(|e| ExperimentError::output(&walks, e))?;
+            for &n in swept_frames {
+                let path = walkthrough(file, db, n)?;
+                write_walk(file, path, quick, &walk_file(dir, Some(n)))?;
+            }
+            Ok(None)
+        }
+    }
+}
+
+/// The walkthrough of `dray walkthrough` through the database's model.
+fn walkthrough(file: &Path, db: &Path, frames: u32) -> Result<CameraPath, ExperimentError> {
+    let db = Database::open(db).map_err(|e| ExperimentError::invalid(file, "walk.frames", e))?;
+    Ok(CameraPath::walkthrough(&db.manifest.model_bounds, frames))
+}
+
+/// Writes `path` to `out` (`quick`: a tenth of its frames, along the same
+/// keyframes) and returns its frame count.
+fn write_walk(
+    file: &Path,
+    path: CameraPath,
     quick: bool,
     out: &Path,
 ) -> Result<u32, ExperimentError> {
-    let path = match &walk.route {
-        Route::File(p) => CameraPath::load(p)
-            .map_err(|e| ExperimentError::invalid(file, "walk.camera_path", e))?,
-        Route::Frames(n) => {
-            let db =
-                Database::open(db).map_err(|e| ExperimentError::invalid(file, "walk.frames", e))?;
-            CameraPath::walkthrough(&db.manifest.model_bounds, *n)
-        }
-    };
     let path = if quick {
         CameraPath::new(quick_frames(path.frames), path.keyframes)
             .map_err(|(key, e)| ExperimentError::invalid(file, format!("walk: {key}"), e))?

@@ -1,13 +1,15 @@
 //! One chart per `[[plot]]`, as SVG and PNG: the median of the repeats as
-//! a line with points, the smallest to largest as an error bar.
+//! a line with points, the smallest to largest as an error bar; or, over
+//! the frames, the median of the repeats per frame as a plain line. The
+//! columns of a second unit are drawn against a right-hand axis.
 //!
 //! Text is drawn with the DejaVu Sans font embedded from `fonts/`, so
 //! plots come out the same on a machine without system fonts.
 
 use crate::error::ExperimentError;
-use crate::measure::{measure, spread};
-use crate::results::{write_atomic, PointRow};
-use crate::spec::Plot;
+use crate::measure::{spread, FRAME, MEASURES};
+use crate::results::{frame_columns, write_atomic, PointRow};
+use crate::spec::{Plot, WALK_FRAMES};
 use plotters::coord::Shift;
 use plotters::prelude::*;
 use std::path::{Path, PathBuf};
@@ -18,9 +20,12 @@ const SIZE: (u32, u32) = (900, 560);
 
 static FONT: &[u8] = include_bytes!("../fonts/DejaVuSans.ttf");
 
-/// One line of a chart: its label and, per x, (x, median, min, max).
-struct Series {
+/// One line of a chart: its label, its axis, and per x (x, median, min,
+/// max) over the repeats.
+struct Line {
     label: String,
+    /// Drawn against the right-hand axis (the plot's second unit).
+    secondary: bool,
     points: Vec<(f64, f64, f64, f64)>,
 }
 
@@ -35,18 +40,27 @@ pub struct PlotFiles {
     pub png: String,
 }
 
-/// Draws every plot into `dir` from the rows of `points.csv`.
+/// Draws every plot into `dir`: from the rows of `points.csv`, or over
+/// the frames from the rows of `frames.csv` (`frames`, without header).
 pub(crate) fn draw_all(
     dir: &Path,
     plots: &[Plot],
     sweep_keys: &[&str],
     rows: &[PointRow],
+    frames: &[Vec<String>],
 ) -> Result<Vec<PlotFiles>, ExperimentError> {
     register_font(dir)?;
     plots
         .iter()
         .enumerate()
-        .map(|(i, p)| draw_one(dir, i + 1, p, sweep_keys, rows))
+        .map(|(i, p)| {
+            let lines = if p.over_frames() {
+                frame_lines(p, sweep_keys, frames)
+            } else {
+                point_lines(p, sweep_keys, rows)
+            };
+            draw_one(dir, i + 1, p, &lines)
+        })
         .collect()
 }
 
@@ -66,81 +80,152 @@ fn register_font(dir: &Path) -> Result<(), ExperimentError> {
 }
 
 /// `links.client_store.latency_ms` → `links.client_store.latency_ms (ms)`:
-/// the unit a key's suffix names, for axis labels.
-fn axis_label(key: &str) -> String {
-    if let Some(m) = measure(key) {
-        return format!("{key} ({})", m.unit);
-    }
-    let units = [
-        ("_mbps", "Mbit/s"),
-        ("_ms", "ms"),
-        ("_mb", "MB"),
-        ("_px", "pixels"),
-        ("_deg", "degrees"),
-        ("_s", "s"),
-    ];
-    match units.iter().find(|(suffix, _)| key.ends_with(suffix)) {
-        Some((_, unit)) => format!("{key} ({unit})"),
-        None => key.to_string(),
+/// the x axis's label, with the unit a key's suffix names.
+fn x_label(key: &str) -> String {
+    match key {
+        FRAME => "frame (number, from 0)".into(),
+        WALK_FRAMES => format!("{WALK_FRAMES} (frames of the walk: fewer = faster camera)"),
+        _ => {
+            let units = [
+                ("_mbps", "Mbit/s"),
+                ("_ms", "ms"),
+                ("_mb", "MB"),
+                ("_px", "pixels"),
+                ("_deg", "degrees"),
+                ("_s", "s"),
+            ];
+            match units.iter().find(|(suffix, _)| key.ends_with(suffix)) {
+                Some((_, unit)) => format!("{key} ({unit})"),
+                None => key.to_string(),
+            }
+        }
     }
 }
 
-fn series_of(p: &Plot, sweep_keys: &[&str], rows: &[PointRow]) -> Vec<Series> {
-    let x = sweep_keys.iter().position(|k| *k == p.x).unwrap_or(0);
-    let y = crate::measure::MEASURES
-        .iter()
-        .position(|m| m.name == p.y)
-        .unwrap_or(0);
-    // Lines are told apart by every other swept key, the series key first.
-    let mut others: Vec<usize> = (0..sweep_keys.len()).filter(|&k| k != x).collect();
+/// A y axis's label: its columns and their unit, `fps (frames/s)`.
+fn y_label(p: &Plot, secondary: bool) -> String {
+    let columns: Vec<&str> =
+        p.y.iter()
+            .filter(|y| is_secondary(p, y) == secondary)
+            .map(String::as_str)
+            .collect();
+    let unit = columns.first().map_or("", |y| p.unit(y));
+    format!("{} ({unit})", columns.join(", "))
+}
+
+/// Whether column `y` goes on the right-hand axis: its unit is not the
+/// first column's.
+fn is_secondary(p: &Plot, y: &str) -> bool {
+    p.unit(y) != p.unit(&p.y[0])
+}
+
+/// The swept keys that tell a plot's lines apart, by index: every one but
+/// x, the series key first.
+fn line_keys(p: &Plot, sweep_keys: &[&str]) -> Vec<usize> {
+    let mut keys: Vec<usize> = (0..sweep_keys.len())
+        .filter(|&k| sweep_keys[k] != p.x)
+        .collect();
     if let Some(s) = sweep_keys
         .iter()
         .position(|k| Some(*k) == p.series.as_deref())
     {
-        others.retain(|&k| k != s);
-        others.insert(0, s);
+        keys.retain(|&k| k != s);
+        keys.insert(0, s);
     }
-    let mut groups: Vec<(Vec<String>, Vec<&PointRow>)> = Vec::new();
+    keys
+}
+
+/// Rows grouped by their values of the swept keys `keys` (`cells` gives a
+/// row's swept values), in the order first seen.
+fn groups<'r, R>(
+    rows: &'r [R],
+    cells: impl Fn(&R) -> &[String],
+    keys: &[usize],
+) -> Vec<(Vec<String>, Vec<&'r R>)> {
+    let mut groups: Vec<(Vec<String>, Vec<&R>)> = Vec::new();
     for row in rows {
-        let key: Vec<String> = others.iter().map(|&k| row.cells[k].clone()).collect();
+        let key: Vec<String> = keys.iter().map(|&k| cells(row)[k].clone()).collect();
         match groups.iter_mut().find(|(k, _)| *k == key) {
             Some((_, members)) => members.push(row),
             None => groups.push((key, vec![row])),
         }
     }
     groups
-        .into_iter()
-        .map(|(key, members)| {
-            let mut xs: Vec<f64> = members
-                .iter()
-                .filter_map(|r| r.cells[x].parse().ok())
-                .collect();
-            xs.sort_by(f64::total_cmp);
-            xs.dedup();
-            let points = xs
-                .iter()
-                .filter_map(|&xv| {
-                    let ys: Vec<f64> = members
-                        .iter()
-                        .filter(|r| r.cells[x].parse::<f64>().ok() == Some(xv))
-                        .filter_map(|r| r.values[y])
-                        .collect();
-                    spread(&ys).map(|(med, lo, hi)| (xv, med, lo, hi))
-                })
-                .collect();
-            let label = if key.is_empty() {
-                p.y.clone()
-            } else {
-                others
-                    .iter()
-                    .zip(&key)
-                    .map(|(&k, v)| format!("{}={v}", sweep_keys[k]))
-                    .collect::<Vec<_>>()
-                    .join(", ")
-            };
-            Series { label, points }
+}
+
+/// A line's label: the column when the plot has several, and the values
+/// of the keys that tell its group apart.
+fn line_label(p: &Plot, y: &str, sweep_keys: &[&str], keys: &[usize], values: &[String]) -> String {
+    let mut parts: Vec<String> = Vec::new();
+    if p.y.len() > 1 || keys.is_empty() {
+        parts.push(y.to_string());
+    }
+    parts.extend(
+        keys.iter()
+            .zip(values)
+            .map(|(&k, v)| format!("{}={v}", sweep_keys[k])),
+    );
+    parts.join(", ")
+}
+
+/// (x, y) samples as (x, median, min, max) per distinct x, by x.
+fn by_x(samples: impl Iterator<Item = (f64, f64)>) -> Vec<(f64, f64, f64, f64)> {
+    let mut samples: Vec<(f64, f64)> = samples.collect();
+    samples.sort_by(|a, b| a.0.total_cmp(&b.0));
+    samples
+        .chunk_by(|a, b| a.0 == b.0)
+        .filter_map(|same_x| {
+            let ys: Vec<f64> = same_x.iter().map(|s| s.1).collect();
+            spread(&ys).map(|(median, lo, hi)| (same_x[0].0, median, lo, hi))
         })
         .collect()
+}
+
+/// The lines of a plot of `points.csv`: per group and y column, the
+/// measure at each swept x.
+fn point_lines(p: &Plot, sweep_keys: &[&str], rows: &[PointRow]) -> Vec<Line> {
+    let x = sweep_keys.iter().position(|k| *k == p.x).unwrap_or(0);
+    let keys = line_keys(p, sweep_keys);
+    let mut lines = Vec::new();
+    for (values, members) in groups(rows, |r| &r.cells, &keys) {
+        for y in &p.y {
+            let column = MEASURES.iter().position(|m| m.name == *y).unwrap_or(0);
+            let samples = members
+                .iter()
+                .filter_map(|r| Some((r.cells[x].parse().ok()?, r.values[column]?)));
+            lines.push(Line {
+                label: line_label(p, y, sweep_keys, &keys, &values),
+                secondary: is_secondary(p, y),
+                points: by_x(samples),
+            });
+        }
+    }
+    lines
+}
+
+/// The lines of a plot over the frames: per group and y column, the
+/// column at each frame number (the median over the repeats).
+fn frame_lines(p: &Plot, sweep_keys: &[&str], frames: &[Vec<String>]) -> Vec<Line> {
+    // A frames.csv row: the swept values, repeat, then the frame's columns.
+    let column =
+        |name: &str| sweep_keys.len() + 1 + frame_columns().position(|c| c == name).unwrap_or(0);
+    let frame = column(FRAME);
+    let keys = line_keys(p, sweep_keys);
+    let mut lines = Vec::new();
+    for (values, members) in groups(frames, |r| r.as_slice(), &keys) {
+        for y in &p.y {
+            let c = column(y);
+            let samples = members
+                .iter()
+                .filter_map(|r| Some((r.get(frame)?.parse().ok()?, r.get(c)?.parse().ok()?)));
+            lines.push(Line {
+                label: line_label(p, y, sweep_keys, &keys, &values),
+                secondary: is_secondary(p, y),
+                points: by_x(samples),
+            });
+        }
+    }
+    lines
 }
 
 /// Axis range over the values with a margin; from 0 when all are positive
@@ -166,45 +251,66 @@ fn range(values: impl Iterator<Item = f64>, from_zero: bool) -> std::ops::Range<
     start..hi + pad
 }
 
+/// The y range of the lines on one axis (the whole spread of the repeats).
+fn y_range(lines: &[Line], secondary: bool) -> std::ops::Range<f64> {
+    let values = lines
+        .iter()
+        .filter(|l| l.secondary == secondary)
+        .flat_map(|l| l.points.iter().flat_map(|q| [q.2, q.3]));
+    range(values, true)
+}
+
 fn draw<DB: DrawingBackend>(
     root: DrawingArea<DB, Shift>,
     title: &str,
     p: &Plot,
-    series: &[Series],
+    lines: &[Line],
 ) -> Result<(), DrawingAreaErrorKind<DB::ErrorType>> {
     root.fill(&WHITE)?;
-    let all = series.iter().flat_map(|s| s.points.iter());
-    let xs = range(all.clone().map(|q| q.0), false);
-    let ys = range(all.flat_map(|q| [q.2, q.3]), true);
+    let xs = range(
+        lines.iter().flat_map(|l| l.points.iter().map(|q| q.0)),
+        false,
+    );
+    let two_axes = lines.iter().any(|l| l.secondary);
     let mut chart = ChartBuilder::on(&root)
         .caption(title, ("sans-serif", 22))
         .margin(16)
         .x_label_area_size(48)
         .y_label_area_size(72)
-        .build_cartesian_2d(xs.clone(), ys)?;
+        .right_y_label_area_size(if two_axes { 72 } else { 0 })
+        .build_cartesian_2d(xs.clone(), y_range(lines, false))?
+        .set_secondary_coord(xs.clone(), y_range(lines, true));
     chart
         .configure_mesh()
-        .x_desc(axis_label(&p.x))
-        .y_desc(axis_label(&p.y))
+        .x_desc(x_label(&p.x))
+        .y_desc(y_label(p, false))
         .label_style(("sans-serif", 14))
         .axis_desc_style(("sans-serif", 16))
         .draw()?;
-    let bar = ((xs.end - xs.start) * 0.006).max(f64::MIN_POSITIVE);
-    for (i, s) in series.iter().enumerate() {
-        let color = Palette99::pick(i).to_rgba();
-        let style = color.stroke_width(2);
+    if two_axes {
         chart
-            .draw_series(LineSeries::new(s.points.iter().map(|q| (q.0, q.1)), style))?
-            .label(s.label.clone())
-            .legend(move |(x, y)| {
-                PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2))
-            });
-        chart.draw_series(
-            s.points
-                .iter()
-                .map(|q| Circle::new((q.0, q.1), 4, color.filled())),
-        )?;
-        chart.draw_series(s.points.iter().flat_map(|q| {
+            .configure_secondary_axes()
+            .y_desc(y_label(p, true))
+            .label_style(("sans-serif", 14))
+            .axis_desc_style(("sans-serif", 16))
+            .draw()?;
+    }
+    // A plot over the frames has a point per frame: a plain line reads
+    // best there; a sweep's few points get markers and the repeats' spread.
+    let marked = !p.over_frames();
+    let bar = ((xs.end - xs.start) * 0.006).max(f64::MIN_POSITIVE);
+    for (i, line) in lines.iter().enumerate() {
+        let color = Palette99::pick(i).to_rgba();
+        let path = LineSeries::new(
+            line.points.iter().map(|q| (q.0, q.1)),
+            color.stroke_width(2),
+        );
+        let markers = line
+            .points
+            .iter()
+            .filter(|_| marked)
+            .map(|q| Circle::new((q.0, q.1), 4, color.filled()));
+        let bars = line.points.iter().filter(|_| marked).flat_map(|q| {
             [
                 PathElement::new(vec![(q.0, q.2), (q.0, q.3)], color.stroke_width(1)),
                 PathElement::new(
@@ -216,7 +322,25 @@ fn draw<DB: DrawingBackend>(
                     color.stroke_width(1),
                 ),
             ]
-        }))?;
+        });
+        let anno = if line.secondary {
+            chart.draw_secondary_series(markers)?;
+            chart.draw_secondary_series(bars)?;
+            chart.draw_secondary_series(path)?
+        } else {
+            chart.draw_series(markers)?;
+            chart.draw_series(bars)?;
+            chart.draw_series(path)?
+        };
+        let axis = if two_axes && line.secondary {
+            " (right)"
+        } else {
+            ""
+        };
+        anno.label(format!("{}{axis}", line.label))
+            .legend(move |(x, y)| {
+                PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2))
+            });
     }
     chart
         .configure_series_labels()
@@ -228,17 +352,10 @@ fn draw<DB: DrawingBackend>(
     root.present()
 }
 
-fn draw_one(
-    dir: &Path,
-    n: usize,
-    p: &Plot,
-    sweep_keys: &[&str],
-    rows: &[PointRow],
-) -> Result<PlotFiles, ExperimentError> {
-    let series = series_of(p, sweep_keys, rows);
-    let title = format!("{} against {}", p.y, p.x);
+fn draw_one(dir: &Path, n: usize, p: &Plot, lines: &[Line]) -> Result<PlotFiles, ExperimentError> {
+    let title = format!("{} against {}", p.y.join(" and "), p.x);
     let short_x = p.x.rsplit('.').next().unwrap_or(&p.x);
-    let stem = format!("plot{n}-{}-by-{short_x}", p.y);
+    let stem = format!("plot{n}-{}-by-{short_x}", p.y.join("-"));
     let svg_path: PathBuf = dir.join(format!("{stem}.svg"));
     let png_path: PathBuf = dir.join(format!("{stem}.png"));
 
@@ -247,7 +364,7 @@ fn draw_one(
         SVGBackend::with_string(&mut svg, SIZE).into_drawing_area(),
         &title,
         p,
-        &series,
+        lines,
     )
     .map_err(|e| ExperimentError::output(&svg_path, e))?;
     write_atomic(&svg_path, svg.as_bytes())?;
@@ -258,7 +375,7 @@ fn draw_one(
         BitMapBackend::with_buffer(&mut rgb, SIZE).into_drawing_area(),
         &title,
         p,
-        &series,
+        lines,
     )
     .map_err(|e| ExperimentError::output(&png_path, e))?;
     write_atomic(

@@ -8,7 +8,7 @@
 //! `--resume` removes before running it again.
 
 use crate::error::ExperimentError;
-use crate::measure::{format_value, MEASURES};
+use crate::measure::{derived, format_value, Frame, DERIVED, MEASURES};
 use std::fs::OpenOptions;
 use std::io::Write;
 use std::path::Path;
@@ -28,13 +28,18 @@ pub(crate) fn points_header(sweep_keys: &[&str]) -> Vec<String> {
     h
 }
 
-/// `frames.csv`'s columns: the swept keys, `repeat`, the display's
-/// `metrics.csv` columns.
+/// `frames.csv`'s columns: the swept keys, `repeat`, the frame's.
 pub(crate) fn frames_header(sweep_keys: &[&str]) -> Vec<String> {
     let mut h: Vec<String> = sweep_keys.iter().map(|k| k.to_string()).collect();
     h.push(REPEAT.into());
-    h.extend(display_columns().map(str::to_string));
+    h.extend(frame_columns().map(str::to_string));
     h
+}
+
+/// A frame's columns in `frames.csv`: the display's `metrics.csv`
+/// columns, then the rates the runner derives from them.
+pub(crate) fn frame_columns() -> impl Iterator<Item = &'static str> {
+    display_columns().chain(DERIVED)
 }
 
 fn display_columns() -> impl Iterator<Item = &'static str> {
@@ -42,11 +47,15 @@ fn display_columns() -> impl Iterator<Item = &'static str> {
 }
 
 /// The `frames.csv` rows of one run: `key` (its swept values and repeat)
-/// and each frame of the display's summary.
-pub(crate) fn frame_rows(key: &[String], frames: &[serde_json::Value]) -> Vec<Vec<String>> {
-    frames
-        .iter()
-        .map(|f| {
+/// and each frame of the display's summary (`json`, read as `frames`).
+pub(crate) fn frame_rows(
+    key: &[String],
+    json: &[serde_json::Value],
+    frames: &[Frame],
+) -> Vec<Vec<String>> {
+    json.iter()
+        .zip(derived(frames))
+        .map(|(f, derived)| {
             let mut row = key.to_vec();
             row.extend(display_columns().map(|col| match &f[col] {
                 serde_json::Value::String(s) => s.clone(),
@@ -57,6 +66,7 @@ pub(crate) fn frame_rows(key: &[String], frames: &[serde_json::Value]) -> Vec<Ve
                 serde_json::Value::Null => String::new(),
                 other => other.to_string(),
             }));
+            row.extend(derived.iter().map(|v| format_value(Some(*v))));
             row
         })
         .collect()
@@ -121,6 +131,23 @@ pub(crate) fn read(path: &Path) -> Result<(Vec<Vec<String>>, bool), ExperimentEr
         .collect::<Result<Vec<Vec<String>>, _>>()
         .map_err(|e| ExperimentError::output(path, e))?;
     Ok((rows, whole < bytes.len()))
+}
+
+/// The rows of `frames.csv` after its header, checked against the
+/// expected one.
+pub(crate) fn read_frames(
+    path: &Path,
+    header: &[String],
+) -> Result<Vec<Vec<String>>, ExperimentError> {
+    let (mut rows, _) = read(path)?;
+    if rows.first().map(Vec::as_slice) != Some(header) {
+        return Err(ExperimentError::output(
+            path,
+            "its columns are not this experiment's",
+        ));
+    }
+    rows.remove(0);
+    Ok(rows)
 }
 
 /// A row of `points.csv` read back.

@@ -38,14 +38,8 @@ pub(crate) fn completed(
         results::create(&frames, frames_header)?;
         return Ok(done);
     }
-    let (rows, _) = results::read(&frames)?;
-    if rows.first().map(Vec::as_slice) != Some(frames_header) {
-        return Err(ExperimentError::output(
-            &frames,
-            "its columns are not this experiment's",
-        ));
-    }
-    let keys = frames_header.len() - dray_actors::display::CSV_HEADER.split(',').count();
+    let rows = results::read_frames(&frames, frames_header)?;
+    let keys = frames_header.len() - results::frame_columns().count();
     let recorded = |row: &Vec<String>| {
         row.len() == frames_header.len()
             && row[keys - 1]
@@ -53,7 +47,7 @@ pub(crate) fn completed(
                 .is_ok_and(|repeat| done.contains(&(row[..keys - 1].to_vec(), repeat)))
     };
     let kept: Vec<Vec<String>> = std::iter::once(frames_header.to_vec())
-        .chain(rows.into_iter().skip(1).filter(recorded))
+        .chain(rows.into_iter().filter(recorded))
         .collect();
     results::rewrite(&frames, &kept)?;
     Ok(done)

@@ -10,7 +10,7 @@ use crate::overrides::{path_value, BaseConfig, Origin, Override};
 use crate::points::{points, Point};
 use crate::results::{self, write_atomic, FRAMES_CSV, POINTS_CSV};
 use crate::resume;
-use crate::spec::{Engine, Experiment};
+use crate::spec::{walk_frames, Engine, Experiment, Route, WALK_FRAMES};
 use crate::summary::{self, RunInfo};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use std::collections::HashSet;
@@ -86,7 +86,7 @@ pub fn run(file: &Path, opts: &Options) -> Result<Report, ExperimentError> {
         None => base.config.scene.database.clone(),
     };
     let plan = Plan {
-        fixed: fixed_overrides(&exp, &base, &database, &dir.join("walk.toml"), opts.quick),
+        fixed: fixed_overrides(&exp, &base, &database, &dir, opts.quick),
         exp: &exp,
         base: &base,
         dir: &dir,
@@ -102,13 +102,14 @@ pub fn run(file: &Path, opts: &Options) -> Result<Report, ExperimentError> {
         None => database,
     };
     let frames = match &exp.walk {
-        Some(w) => Some(model::write_walk(
+        Some(w) => model::write_walks(
             &exp.file,
             w,
+            &exp.swept_walk_frames(),
             &database,
             opts.quick,
-            &dir.join("walk.toml"),
-        )?),
+            &dir,
+        )?,
         None => None,
     };
 
@@ -202,7 +203,12 @@ pub fn run(file: &Path, opts: &Options) -> Result<Report, ExperimentError> {
     // The plots and the summary show every recorded run, also when the
     // experiment stopped early.
     let rows = results::read_points(&dir.join(POINTS_CSV), &points_header)?;
-    let plots = crate::plot::draw_all(&dir, &exp.plots, &keys, &rows)?;
+    let frame_rows = if exp.plots.iter().any(|p| p.over_frames()) {
+        results::read_frames(&dir.join(FRAMES_CSV), &frames_header)?
+    } else {
+        Vec::new()
+    };
+    let plots = crate::plot::draw_all(&dir, &exp.plots, &keys, &rows, &frame_rows)?;
     let info = RunInfo {
         quick: opts.quick,
         repeats,
@@ -252,12 +258,12 @@ fn results_dir(exp: &Experiment, opts: &Options) -> Result<PathBuf, ExperimentEr
 }
 
 /// The overrides every run shares, in the order they apply: the runner's,
-/// the model, the walk, then `[set]`.
+/// the model, the walk, then `[set]`. `dir` is the results directory.
 fn fixed_overrides(
     exp: &Experiment,
     base: &BaseConfig,
     database: &Path,
-    walk_file: &Path,
+    dir: &Path,
     quick: bool,
 ) -> Vec<Override> {
     let mut o = vec![
@@ -283,11 +289,14 @@ fn fixed_overrides(
     }
     match &exp.walk {
         Some(w) => {
-            o.push(Override::new(
-                Origin::Walk,
-                "render.camera_path",
-                path_value(walk_file),
-            ));
+            // A swept walkthrough's path is each point's (`Plan::config`).
+            if w.route != Route::SweptFrames {
+                o.push(Override::new(
+                    Origin::Walk,
+                    "render.camera_path",
+                    path_value(&model::walk_file(dir, None)),
+                ));
+            }
             o.push(Override::new(
                 Origin::Walk,
                 "render.loops",
@@ -304,11 +313,11 @@ fn fixed_overrides(
         }
         None => {}
     }
-    let dir = exp.file.parent().unwrap_or(Path::new("/"));
+    let exp_dir = exp.file.parent().unwrap_or(Path::new("/"));
     o.extend(
         exp.set
             .iter()
-            .map(|(k, v)| Override::from_file(Origin::Set, k, v, dir)),
+            .map(|(k, v)| Override::from_file(Origin::Set, k, v, exp_dir)),
     );
     o
 }
@@ -340,12 +349,14 @@ impl Plan<'_> {
             ),
         ];
         o.extend(self.fixed.iter().cloned());
-        o.extend(
-            point
-                .values
-                .iter()
-                .map(|(k, v)| Override::from_file(Origin::Sweep, k, v, exp_dir)),
-        );
+        o.extend(point.values.iter().map(|(k, v)| match walk_frames(v) {
+            Some(n) if k == WALK_FRAMES => Override::new(
+                Origin::Sweep,
+                "render.camera_path",
+                path_value(&model::walk_file(self.dir, Some(n))),
+            ),
+            _ => Override::from_file(Origin::Sweep, k, v, exp_dir),
+        }));
         let (cfg, table) = self.base.build(&self.exp.file, &o)?;
         Ok((cfg, table, run_dir))
     }
@@ -380,15 +391,13 @@ fn record(
     };
     let figures = RunFigures {
         measured: &frames[measured_from..],
-        whole_run: measured_from == 0,
-        voxel_bytes_raw: out.voxel_bytes_raw,
         wall_s: out.wall_s,
     };
     let mut key = point.cells();
     key.push(repeat.to_string());
     results::append(
         &dir.join(FRAMES_CSV),
-        &results::frame_rows(&key, &frames_json),
+        &results::frame_rows(&key, &frames_json, &frames),
     )?;
     let values: Vec<Option<f64>> = MEASURES.iter().map(|m| m.of(&figures)).collect();
     let mut row = key;

@@ -8,14 +8,15 @@
 //! [model]  generate = "plant", triangles = 1_000_000, seed = 1   # or database = "PATH"
 //! [walk]   frames = 60, loops = 1, warm = false                  # or camera_path = "PATH"
 //! [set]    "clients.count" = 2
-//! [sweep]  "clients.miss_mode" = ["suspend", "block"]
-//! [[plot]] x = "…", y = "fps", series = "…"
+//! [sweep]  "clients.miss_mode" = ["suspend", "block"], "walk.frames" = [60, 30]
+//! [[plot]] x = "…", y = "fps", series = "…"        # a swept key against measures
+//! [[plot]] x = "frame", y = ["fps", "voxel_mb_raw_per_s"]   # over the frames
 //! ```
 //!
 //! Every key is documented in `docs/experiments.md`.
 
 use crate::error::ExperimentError;
-use crate::measure::MEASURES;
+use crate::measure::{frame_column, measure, FRAME, FRAME_COLUMNS, MEASURES};
 use dray_actors::display::CameraPath;
 use serde::Deserialize;
 use std::path::{Path, PathBuf};
@@ -61,7 +62,15 @@ pub enum Route {
     File(PathBuf),
     /// The walkthrough of `dray walkthrough` with this many frames.
     Frames(u32),
+    /// The walkthrough with the frames the sweep's [`WALK_FRAMES`] gives
+    /// each point.
+    SweptFrames,
 }
+
+/// The one swept key that is not a config key: the frames of the
+/// walkthrough, flown along the same keyframes, so that fewer frames
+/// mean a faster camera.
+pub const WALK_FRAMES: &str = "walk.frames";
 
 /// The camera path of every run.
 #[derive(Clone, Debug, PartialEq)]
@@ -78,12 +87,45 @@ pub struct Walk {
 #[derive(Clone, Debug, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct Plot {
-    /// A swept key with numbers for values.
+    /// A swept key with numbers for values, or [`FRAME`]: a plot over the
+    /// frames of `frames.csv`.
     pub x: String,
-    /// A measured column.
-    pub y: String,
+    /// Measured columns (of `frames.csv` for a plot over the frames), one
+    /// or a list: `y = "fps"` or `y = ["fps", "voxel_mb_raw_per_s"]`.
+    #[serde(deserialize_with = "one_or_many")]
+    pub y: Vec<String>,
     /// A swept key: one line per value.
     pub series: Option<String>,
+}
+
+impl Plot {
+    /// Whether it is drawn over the frames (from `frames.csv`).
+    pub fn over_frames(&self) -> bool {
+        self.x == FRAME
+    }
+
+    /// The unit of a y column.
+    pub fn unit(&self, y: &str) -> &'static str {
+        let unit = if self.over_frames() {
+            frame_column(y).map(|c| c.unit)
+        } else {
+            measure(y).map(|m| m.unit)
+        };
+        unit.unwrap_or("")
+    }
+}
+
+fn one_or_many<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Vec<String>, D::Error> {
+    #[derive(Deserialize)]
+    #[serde(untagged)]
+    enum Columns {
+        One(String),
+        Many(Vec<String>),
+    }
+    match Columns::deserialize(d)? {
+        Columns::One(y) => Ok(vec![y]),
+        Columns::Many(ys) => Ok(ys),
+    }
 }
 
 /// A checked experiment file.
@@ -207,7 +249,6 @@ impl Experiment {
             return Err(bad("config", format!("{}: no such file", config.display())));
         }
         let model = raw.model.map(|m| model(&file, &dir, m)).transpose()?;
-        let walk = raw.walk.map(|w| walk(&file, &dir, w)).transpose()?;
 
         let set = flatten(raw.set);
         let mut sweep = Vec::new();
@@ -222,8 +263,22 @@ impl Experiment {
             if set.iter().any(|(k, _)| *k == key) {
                 return Err(bad(&label, "is also in [set]".into()));
             }
+            if key == WALK_FRAMES {
+                check_walk_frames(&file, &values)?;
+            }
             sweep.push((key, values));
         }
+        let frames_swept = sweep.iter().any(|(k, _)| k == WALK_FRAMES);
+        let walk = match raw.walk {
+            Some(w) => Some(walk(&file, &dir, w, frames_swept)?),
+            // A swept walkthrough needs no [walk] table: flown once.
+            None if frames_swept => Some(Walk {
+                route: Route::SweptFrames,
+                loops: 1,
+                warm: false,
+            }),
+            None => None,
+        };
         for (i, p) in raw.plot.iter().enumerate() {
             check_plot(&file, i, p, &sweep)?;
         }
@@ -245,6 +300,16 @@ impl Experiment {
     /// The swept keys, in order.
     pub fn sweep_keys(&self) -> Vec<&str> {
         self.sweep.iter().map(|(k, _)| k.as_str()).collect()
+    }
+
+    /// The frames of the walkthrough the sweep gives ([`WALK_FRAMES`];
+    /// empty when it is not swept).
+    pub fn swept_walk_frames(&self) -> Vec<u32> {
+        self.sweep
+            .iter()
+            .filter(|(k, _)| k == WALK_FRAMES)
+            .flat_map(|(_, values)| values.iter().filter_map(walk_frames))
+            .collect()
     }
 }
 
@@ -292,9 +357,23 @@ fn model(file: &Path, dir: &Path, m: ModelFile) -> Result<Model, ExperimentError
     }
 }
 
-fn walk(file: &Path, dir: &Path, w: WalkFile) -> Result<Walk, ExperimentError> {
+fn walk(file: &Path, dir: &Path, w: WalkFile, frames_swept: bool) -> Result<Walk, ExperimentError> {
     let bad = |key: &str, problem: String| ExperimentError::invalid(file, key, problem);
     let route = match (w.camera_path, w.frames) {
+        (None, None) if frames_swept => Route::SweptFrames,
+        (camera_path, _) if frames_swept => {
+            let key = if camera_path.is_some() {
+                "walk.camera_path"
+            } else {
+                "walk.frames"
+            };
+            return Err(bad(
+                key,
+                format!(
+                    "goes with no [sweep] {WALK_FRAMES} (the sweep gives the walkthrough's frames)"
+                ),
+            ));
+        }
         (Some(p), None) => {
             let p = dir.join(p);
             CameraPath::load(&p).map_err(|e| bad("walk.camera_path", e.to_string()))?;
@@ -328,6 +407,26 @@ fn walk(file: &Path, dir: &Path, w: WalkFile) -> Result<Walk, ExperimentError> {
     })
 }
 
+/// The swept frames of the walkthrough: each a whole number of frames.
+fn check_walk_frames(file: &Path, values: &[toml::Value]) -> Result<(), ExperimentError> {
+    for v in values {
+        let ok = v
+            .as_integer()
+            .is_some_and(|n| (1..=i64::from(MAX_FRAMES)).contains(&n));
+        if !ok {
+            return Err(ExperimentError::invalid(
+                file,
+                format!("[sweep] {WALK_FRAMES} = {v}"),
+                format!("frames of the walkthrough must be whole numbers in 1..={MAX_FRAMES}"),
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// Most units of the y columns of one plot: one per side of the chart.
+const MAX_PLOT_UNITS: usize = 2;
+
 fn check_plot(
     file: &Path,
     i: usize,
@@ -342,23 +441,51 @@ fn check_plot(
         .map(|(k, _)| k.as_str())
         .collect::<Vec<_>>()
         .join(", ");
-    let Some((_, xs)) = sweep.iter().find(|(k, _)| *k == p.x) else {
-        return Err(bad(
-            "x",
-            format!("{:?} is not a swept key (swept: {swept})", p.x),
-        ));
-    };
-    if let Some(v) = xs.iter().find(|v| number(v).is_none()) {
-        return Err(bad(
-            "x",
-            format!("{:?} sweeps {v}, not a number: x must be numeric", p.x),
-        ));
+    if !p.over_frames() {
+        let Some((_, xs)) = sweep.iter().find(|(k, _)| *k == p.x) else {
+            return Err(bad(
+                "x",
+                format!("{:?} is not a swept key or {FRAME:?} (swept: {swept})", p.x),
+            ));
+        };
+        if let Some(v) = xs.iter().find(|v| number(v).is_none()) {
+            return Err(bad(
+                "x",
+                format!("{:?} sweeps {v}, not a number: x must be numeric", p.x),
+            ));
+        }
     }
-    if !MEASURES.iter().any(|m| m.name == p.y) {
-        let names: Vec<&str> = MEASURES.iter().map(|m| m.name).collect();
+    let (columns, what): (Vec<&str>, &str) = if p.over_frames() {
+        (
+            FRAME_COLUMNS.iter().map(|c| c.name).collect(),
+            "a column of frames.csv",
+        )
+    } else {
+        (
+            MEASURES.iter().map(|m| m.name).collect(),
+            "a measured column",
+        )
+    };
+    if p.y.is_empty() {
+        return Err(bad("y", "names no column".into()));
+    }
+    if let Some(y) = p.y.iter().find(|y| !columns.contains(&y.as_str())) {
         return Err(bad(
             "y",
-            format!("{:?} is not a measured column ({})", p.y, names.join(", ")),
+            format!("{y:?} is not {what} ({})", columns.join(", ")),
+        ));
+    }
+    let mut units: Vec<&str> = p.y.iter().map(|y| p.unit(y)).collect();
+    units.sort_unstable();
+    units.dedup();
+    if units.len() > MAX_PLOT_UNITS {
+        return Err(bad(
+            "y",
+            format!(
+                "has columns in {} units ({}): a chart has one axis per side",
+                units.len(),
+                units.join(", ")
+            ),
         ));
     }
     if let Some(s) = &p.series {
@@ -370,6 +497,11 @@ fn check_plot(
         }
     }
     Ok(())
+}
+
+/// A value of [`WALK_FRAMES`] as frames (checked when the file loads).
+pub(crate) fn walk_frames(v: &toml::Value) -> Option<u32> {
+    v.as_integer().and_then(|n| u32::try_from(n).ok())
 }
 
 /// A TOML number as f64.

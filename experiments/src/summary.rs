@@ -7,7 +7,7 @@ use crate::plot::PlotFiles;
 use crate::points::{cell, Point};
 use crate::results::{write_atomic, PointRow, FRAMES_CSV, POINTS_CSV};
 use crate::spec::{Experiment, Model, Route};
-use std::path::Path;
+use std::path::{Component, Path, PathBuf};
 use std::process::Command;
 
 /// What the summary tells besides the experiment file and the rows.
@@ -59,6 +59,31 @@ fn commit(dir: &Path) -> String {
     }
 }
 
+/// A path as the summary shows it: without `dir/..` steps, and relative
+/// to the current directory when inside it (so that a committed summary
+/// reads `experiments/x.toml`), absolute otherwise.
+fn shown(path: &Path) -> PathBuf {
+    // Lexical: `experiments/../config` is `config` unless `experiments`
+    // is a link, and the summary only names the file.
+    let mut clean = PathBuf::new();
+    for c in path.components() {
+        match c {
+            Component::ParentDir
+                if matches!(clean.components().next_back(), Some(Component::Normal(_))) =>
+            {
+                clean.pop();
+            }
+            Component::CurDir => {}
+            c => clean.push(c),
+        }
+    }
+    let relative = std::env::current_dir()
+        .ok()
+        .and_then(|cwd| clean.strip_prefix(cwd).ok().map(Path::to_path_buf))
+        .filter(|p| !p.as_os_str().is_empty());
+    relative.unwrap_or(clean)
+}
+
 fn table_cell(s: &str) -> String {
     s.replace('|', "\\|")
 }
@@ -87,9 +112,13 @@ pub(crate) fn write(
             "walkthrough, {loops} loop(s){}",
             if warm { ", last loop measured" } else { "" }
         ),
+        Some((Route::SweptFrames, loops, warm)) => format!(
+            "walkthrough with the frames of `walk.frames` (`walks/`), {loops} loop(s){}",
+            if warm { ", last loop measured" } else { "" }
+        ),
         Some((Route::File(p), loops, warm)) => format!(
             "{}, {loops} loop(s){}",
-            p.display(),
+            shown(p).display(),
             if warm { ", last loop measured" } else { "" }
         ),
         None => "the base config's camera".into(),
@@ -109,10 +138,10 @@ pub(crate) fn write(
          | finished | {} |\n\
          | machine | {} |\n\
          | commit | {} |\n\n",
-        exp.file.display(),
-        exp.config.display(),
+        shown(&exp.file).display(),
+        shown(&exp.config).display(),
         exp.engine.name(),
-        info.database.display(),
+        shown(info.database).display(),
         rows.len(),
         info.runs_total,
         info.repeats,

@@ -1,5 +1,6 @@
 //! The runner end to end on the in-process engine: a 2 × 2 sweep on a tiny
-//! plant, resuming an interrupted run, and the errors of bad files.
+//! plant, a sweep of the walkthrough's frames with a plot over the frames,
+//! resuming an interrupted run, and the errors of bad files.
 
 use dray_experiments::{run, ExperimentError, Options, FRAMES_CSV, POINTS_CSV};
 use std::collections::BTreeSet;
@@ -105,11 +106,18 @@ fn a_sweep_writes_every_output() {
         assert!(value("wall_s") > 0.0);
     }
 
-    // frames.csv: every frame of every run (4 frames each).
+    // frames.csv: every frame of every run (4 frames each): the display's
+    // columns, then the per-frame rates.
     let frames = csv_rows(&dir.join(FRAMES_CSV));
-    let display_columns: Vec<&str> = dray_actors::display::CSV_HEADER.split(',').collect();
+    let mut frame_columns: Vec<&str> = dray_actors::display::CSV_HEADER.split(',').collect();
+    frame_columns.extend([
+        "frame_ms_shared",
+        "fps_shared",
+        "voxel_mb_per_s",
+        "voxel_mb_raw_per_s",
+    ]);
     assert_eq!(frames[0][..3], header[..3]);
-    assert_eq!(frames[0][3..], display_columns[..]);
+    assert_eq!(frames[0][3..], frame_columns[..]);
     assert_eq!(frames.len(), 1 + 8 * 4);
     assert!(frames[1..].iter().all(|r| r.len() == frames[0].len()));
 
@@ -147,6 +155,115 @@ fn a_sweep_writes_every_output() {
     }
     assert!(dir.join("experiment.toml").is_file());
     assert!(dir.join("walk.toml").is_file());
+}
+
+/// Writes an experiment file in `dir` from `body`, based on
+/// `config/examples/local.toml` and the tiny plant at 64 × 48 pixels.
+fn tiny_experiment(dir: &Path, name: &str, body: &str) -> PathBuf {
+    let file = dir.join(format!("{name}.toml"));
+    let config = repo().join("../config/examples/local.toml");
+    let text = format!(
+        "name = {name:?}\nconfig = {:?}\nengine = \"sim\"\n\
+         [model]\ngenerate = \"plant\"\ntriangles = 20_000\nseed = 3\n\
+         [set]\n\"clients.count\" = 2\n\"clients.threads\" = 1\n\"clients.cache_mb\" = 16\n\
+         \"render.width\" = 64\n\"render.height\" = 48\n\"render.shadows\" = false\n\
+         \"render.reflection_depth\" = 0\n{body}",
+        config.display().to_string()
+    );
+    std::fs::write(&file, text).unwrap();
+    file
+}
+
+fn assert_valid_plot(dir: &Path, stem: &str, texts: &[&str]) {
+    let svg = std::fs::read_to_string(dir.join(format!("{stem}.svg"))).unwrap();
+    assert!(svg.starts_with("<svg") && svg.trim_end().ends_with("</svg>"));
+    for text in texts {
+        assert!(svg.contains(text), "{stem}.svg lacks {text:?}");
+    }
+    let png = std::fs::File::open(dir.join(format!("{stem}.png"))).unwrap();
+    let mut reader = png::Decoder::new(png).read_info().unwrap();
+    let mut pixels = vec![0; reader.output_buffer_size()];
+    let info = reader.next_frame(&mut pixels).unwrap();
+    assert_eq!((info.width, info.height), (900, 560));
+    assert!(pixels.iter().any(|&b| b < 64));
+}
+
+#[test]
+fn a_walk_frames_sweep_and_a_plot_over_the_frames() {
+    let tmp = tempfile::tempdir().unwrap();
+    let file = tiny_experiment(
+        tmp.path(),
+        "walks",
+        "[sweep]\n\"walk.frames\" = [6, 3]\n\
+         [[plot]]\nx = \"frame\"\ny = [\"fps_shared\", \"voxel_mb_raw_per_s\"]\n\
+         [[plot]]\nx = \"walk.frames\"\ny = \"voxel_mb_raw\"\n",
+    );
+    let report = run(&file, &options(tmp.path())).unwrap();
+    assert_eq!((report.runs_total, report.runs_done), (2, 2));
+    let dir = tmp.path().join("out");
+
+    // One walk per point, with the point's frames, and no walk.toml.
+    for n in [6, 3] {
+        let walk = dir.join(format!("walks/frames-{n}.toml"));
+        let path = dray_actors::display::CameraPath::load(&walk).unwrap();
+        assert_eq!(path.frames, n);
+        let config = dir.join(format!(
+            "runs/p00{}-r0/config.toml",
+            if n == 6 { 0 } else { 1 }
+        ));
+        let config = dray_config::Config::load(&config).unwrap();
+        assert_eq!(config.render.camera_path.as_deref(), Some(walk.as_path()));
+    }
+    assert!(!dir.join("walk.toml").exists());
+
+    // Every frame has its decompressed bytes, and the run's sum is the
+    // point's voxel_mb_raw.
+    let frames = csv_rows(&dir.join(FRAMES_CSV));
+    assert_eq!(frames.len(), 1 + 6 + 3);
+    let col = |name: &str| frames[0].iter().position(|h| h == name).unwrap();
+    let points = csv_rows(&dir.join(POINTS_CSV));
+    let pcol = |name: &str| points[0].iter().position(|h| h == name).unwrap();
+    for point in &points[1..] {
+        let mine = frames[1..]
+            .iter()
+            .filter(|f| f[col("walk.frames")] == point[pcol("walk.frames")]);
+        let raw: u64 = mine
+            .clone()
+            .map(|f| f[col("bytes_raw")].parse::<u64>().unwrap())
+            .sum();
+        let fetched: u64 = mine
+            .map(|f| f[col("bytes_fetched")].parse::<u64>().unwrap())
+            .sum();
+        assert!(raw > fetched, "decompressed {raw} <= compressed {fetched}");
+        let mb_raw: f64 = point[pcol("voxel_mb_raw")].parse().unwrap();
+        assert!(
+            (mb_raw - raw as f64 / 1e6).abs() < 1e-5,
+            "{mb_raw} against {raw}"
+        );
+    }
+    for f in &frames[1..] {
+        let rate: f64 = f[col("voxel_mb_raw_per_s")].parse().unwrap();
+        let expected = f[col("bytes_raw")].parse::<f64>().unwrap() / 1e6
+            * f[col("fps_shared")].parse::<f64>().unwrap();
+        assert!(
+            (rate - expected).abs() <= 1e-3 * expected.max(1.0),
+            "{rate} against {expected}"
+        );
+    }
+
+    // Two units: the rate on a right-hand axis.
+    assert_valid_plot(
+        &dir,
+        "plot1-fps_shared-voxel_mb_raw_per_s-by-frame",
+        &[
+            "fps_shared (frames/s)",
+            "voxel_mb_raw_per_s (MB/s)",
+            "walk.frames=6",
+        ],
+    );
+    assert_valid_plot(&dir, "plot2-voxel_mb_raw-by-frames", &["faster camera"]);
+    let summary = std::fs::read_to_string(dir.join("summary.md")).unwrap();
+    assert!(summary.contains("walks/"), "{summary}");
 }
 
 #[test]
@@ -236,6 +353,22 @@ fn a_bad_key_is_named() {
         "[sweep]\n\"clients.count\" = [1, 2]\n[[plot]]\nx = \"clients.count\"\ny = \"speed\"\n",
     );
     assert!(e.contains("plot[0].y"), "{e}");
+
+    // A plot over the frames draws columns of frames.csv.
+    let e = error_of(
+        "badframes.toml",
+        "engine = \"sim\"",
+        "[[plot]]\nx = \"frame\"\ny = [\"fps\", \"voxel_mb\"]\n",
+    );
+    assert!(e.contains("plot[0].y") && e.contains("\"voxel_mb\""), "{e}");
+    assert!(e.contains("frames.csv"), "{e}");
+
+    let e = error_of(
+        "threeunits.toml",
+        "engine = \"sim\"",
+        "[[plot]]\nx = \"frame\"\ny = [\"fps\", \"stall_ms\", \"bytes_raw\"]\n",
+    );
+    assert!(e.contains("plot[0].y") && e.contains("3 units"), "{e}");
 }
 
 #[test]
@@ -257,6 +390,20 @@ fn a_bad_value_is_named() {
 
     let e = error_of("badrepeat.toml", "engine = \"sim\"\nrepeat = 0", "");
     assert!(e.contains("repeat: 0 is not in"), "{e}");
+
+    let e = error_of(
+        "badframes.toml",
+        "engine = \"sim\"",
+        "[sweep]\n\"walk.frames\" = [10, 0]\n",
+    );
+    assert!(e.contains("[sweep] walk.frames = 0"), "{e}");
+    // The sweep gives the walkthrough's frames: [walk] cannot as well.
+    let e = error_of(
+        "twoframes.toml",
+        "engine = \"sim\"",
+        "[walk]\nframes = 10\n[sweep]\n\"walk.frames\" = [10, 5]\n",
+    );
+    assert!(e.contains("walk.frames") && e.contains("[sweep]"), "{e}");
 }
 
 #[test]

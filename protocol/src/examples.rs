@@ -66,6 +66,7 @@ pub fn one_of_each(voxel_bytes: usize) -> Vec<Message> {
                 voxels_touched: 17,
                 misses: 3,
                 bytes_fetched: 123_456,
+                bytes_raw: 400_000,
                 stall_us: 77,
             },
             hits: BoundedVec::new(vec![[0.5, 1.5, -2.0]]).expect("one entry is under the bound"),
@@ -92,6 +93,7 @@ pub fn one_of_each(voxel_bytes: usize) -> Vec<Message> {
                 time_us: 40_000,
                 misses: 12,
                 bytes_fetched: 9_999_999,
+                bytes_raw: 31_000_000,
                 voxels_touched: 4_000,
                 stall_us: 5,
                 clients: BoundedVec::new(vec![ClientFrameStats {
@@ -128,6 +130,7 @@ pub fn one_of_each(voxel_bytes: usize) -> Vec<Message> {
                 voxels_touched: 3,
                 misses: 1,
                 bytes_fetched: 4_000,
+                bytes_raw: 12_500,
                 stall_us: 10,
             },
             hits: BoundedVec::new(vec![[1.0, -2.5, 3.25], [0.0, 1e9, -7.0]])

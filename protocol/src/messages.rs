@@ -158,6 +158,8 @@ pub struct TileStats {
     pub misses: u32,
     /// Bytes of voxels fetched for this tile.
     pub bytes_fetched: u64,
+    /// The same voxels' bytes after decompression.
+    pub bytes_raw: u64,
     /// Render thread stall charged to this tile, microseconds: the time
     /// its thread waited while every tile it had in progress waited for
     /// voxels, since the thread's previous tile finished (so the sum over
@@ -252,6 +254,8 @@ pub struct FrameStats {
     pub misses: u64,
     /// Voxel bytes fetched.
     pub bytes_fetched: u64,
+    /// The same voxels' bytes after decompression.
+    pub bytes_raw: u64,
     /// Distinct voxels entered, summed over tiles (for the cache hit rate).
     pub voxels_touched: u64,
     /// Render threads' stall time, summed over clients, microseconds.
@@ -518,6 +522,8 @@ impl MessageKind {
             | MessageKind::FrameAssigned => ENVELOPE_OVERHEAD,
             MessageKind::TileReport => {
                 ENVELOPE_OVERHEAD + crate::MAX_NAME_LEN + 2 + MAX_REPORT_HITS * 12
+                    // the stats' bytes_raw: a u64 varint
+                    + 10
             }
             MessageKind::ManifestData => BULK_FRAME_MAX,
             MessageKind::TileOwners => {
@@ -536,10 +542,14 @@ impl MessageKind {
             MessageKind::VoxelError | MessageKind::Shutdown => ENVELOPE_OVERHEAD + text,
             MessageKind::TileDone => {
                 ENVELOPE_OVERHEAD + 3 * (tile_px * 4 + 4) + MAX_REPORT_HITS * 12 + 2
+                    // the stats' bytes_raw: a u64 varint
+                    + 10
             }
             MessageKind::VoxelLoaded => BULK_FRAME_MAX,
             MessageKind::FrameDone => {
                 ENVELOPE_OVERHEAD + MAX_STATS_CLIENTS * (crate::MAX_NAME_LEN + 1 + 5 * 10) + 2 * 10
+                    // the stats' bytes_raw: a u64 varint
+                    + 10
             }
             MessageKind::PrefetchHint => ENVELOPE_OVERHEAD + MAX_PREFETCH_IDS * 4 + 4,
             MessageKind::Handshake => crate::HANDSHAKE_FRAME_MAX,

@@ -240,6 +240,7 @@ fn maximal_messages_fit_their_limits() {
         voxels_touched: u32::MAX,
         misses: u32::MAX,
         bytes_fetched: u64::MAX,
+        bytes_raw: u64::MAX,
         stall_us: u64::MAX,
     };
     let client = ClientFrameStats {
@@ -309,6 +310,7 @@ fn maximal_messages_fit_their_limits() {
                 time_us: u64::MAX,
                 misses: u64::MAX,
                 bytes_fetched: u64::MAX,
+                bytes_raw: u64::MAX,
                 voxels_touched: u64::MAX,
                 stall_us: u64::MAX,
                 clients: BoundedVec::new(vec![client; MAX_STATS_CLIENTS]).unwrap(),

@@ -39,9 +39,24 @@ pub const RETRY_DELAY: Duration = Duration::from_millis(100);
 /// Most hinted voxels waiting to be prefetched.
 pub const MAX_PREFETCH_QUEUE: usize = 16384;
 
-/// A voxel and the compressed bytes fetched for it on behalf of this
-/// request (only the request that caused the fetch is charged).
-pub(crate) type Answer = Result<(Arc<PreparedVoxel>, u64), LoadError>;
+/// Voxel bytes fetched: as they travelled (compressed) and after
+/// decompression.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub(crate) struct Fetched {
+    pub compressed: u64,
+    pub raw: u64,
+}
+
+impl std::ops::AddAssign for Fetched {
+    fn add_assign(&mut self, other: Fetched) {
+        self.compressed += other.compressed;
+        self.raw += other.raw;
+    }
+}
+
+/// A voxel and the bytes fetched for it on behalf of this request (only
+/// the request that caused the fetch is charged).
+pub(crate) type Answer = Result<(Arc<PreparedVoxel>, Fetched), LoadError>;
 
 /// A render thread's request.
 pub(crate) struct LoadRequest {
@@ -59,6 +74,8 @@ pub(crate) struct Shared {
 pub(crate) struct TileLoader<'a> {
     pub shared: &'a Shared,
     pub bytes: AtomicU64,
+    /// The same voxels' bytes after decompression.
+    pub bytes_raw: AtomicU64,
 }
 
 impl VoxelSource for TileLoader<'_> {
@@ -86,8 +103,9 @@ impl VoxelLoader for TileLoader<'_> {
             if !sent {
                 return Err(stopping());
             }
-            let (v, bytes) = rx.await.map_err(|_| stopping())??;
-            self.bytes.fetch_add(bytes, Ordering::Relaxed);
+            let (v, fetched) = rx.await.map_err(|_| stopping())??;
+            self.bytes.fetch_add(fetched.compressed, Ordering::Relaxed);
+            self.bytes_raw.fetch_add(fetched.raw, Ordering::Relaxed);
             Ok(v)
         })
     }
@@ -178,13 +196,13 @@ pub(crate) struct Loader {
     decoded: mpsc::UnboundedSender<Decoded>,
     pub stats: LoaderStats,
     /// Bytes fetched that no tile has been charged with yet.
-    unattributed: u64,
+    unattributed: Fetched,
 }
 
 impl Loader {
     /// Bytes fetched that no tile asked for (prefetches), since the last
     /// call.
-    pub fn take_unattributed(&mut self) -> u64 {
+    pub fn take_unattributed(&mut self) -> Fetched {
         std::mem::take(&mut self.unattributed)
     }
 
@@ -212,7 +230,7 @@ impl Loader {
             out,
             decoded,
             stats: LoaderStats::default(),
-            unattributed: 0,
+            unattributed: Fetched::default(),
         }
     }
 
@@ -220,7 +238,7 @@ impl Loader {
     pub fn request(&mut self, req: LoadRequest) {
         let id = req.id;
         if let Some(v) = self.cache.get(id) {
-            let _ = req.reply.send(Ok((v, 0)));
+            let _ = req.reply.send(Ok((v, Fetched::default())));
             return;
         }
         if id as usize >= self.manifest.voxels.len() {
@@ -420,22 +438,28 @@ impl Loader {
                 let (v, freed) = self.cache.insert(Arc::new(v));
                 let _ = freed;
                 self.stats.fetched += 1;
+                let raw = self
+                    .manifest
+                    .voxels
+                    .get(d.id as usize)
+                    .map_or(0, |entry| entry.raw_bytes);
                 self.stats.bytes_fetched += d.bytes;
-                if let Some(entry) = self.manifest.voxels.get(d.id as usize) {
-                    self.stats.bytes_raw += entry.raw_bytes;
-                }
+                self.stats.bytes_raw += raw;
                 if let Some(e) = self.ever_loaded.get_mut(d.id as usize) {
                     if std::mem::replace(e, true) {
                         self.stats.refetched += 1;
                     }
                 }
-                let mut bytes = d.bytes;
+                let mut fetched = Fetched {
+                    compressed: d.bytes,
+                    raw,
+                };
                 for w in p.waiters {
-                    let _ = w.send(Ok((v.clone(), std::mem::take(&mut bytes))));
+                    let _ = w.send(Ok((v.clone(), std::mem::take(&mut fetched))));
                 }
                 // Prefetched before any packet asked: the next tile to
                 // finish carries these bytes, so frames count every byte.
-                self.unattributed += bytes;
+                self.unattributed += fetched;
             }
             Err(why) => {
                 p.failures += 1;

@@ -38,7 +38,7 @@ use dray_runtime::{ActorRef, Delivery, Mailbox};
 use dray_scene::db::manifest::Manifest;
 use dray_trace::scene::TopLevel;
 use dray_trace::tile::MissMode;
-use loader::{Loader, Shared};
+use loader::{Fetched, Loader, Shared};
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::Arc;
 use tokio::sync::mpsc;
@@ -343,7 +343,7 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
             asked_for_work = true;
             if opts.preload {
                 // What the preload fetched is charged to no frame.
-                let bytes = loader.take_unattributed();
+                let bytes = loader.take_unattributed().compressed;
                 info!(%actor, voxels = loader.stats.preloaded, mb = bytes as f64 / 1e6,
                     seconds = preload_start.elapsed().as_secs_f64(), "preloaded");
             }
@@ -504,17 +504,18 @@ fn job(a: AssignTile, diagonal: f32, isa: dray_trace::render::Isa) -> TileJob {
 /// to it so that frames count every byte fetched.
 fn finish_tile(
     r: TileResult,
-    prefetched: u64,
+    prefetched: Fetched,
     compression: Compression,
     summary: &mut ClientSummary,
 ) -> Option<Message> {
     let TileResult {
         job,
         image,
-        bytes_fetched,
+        mut fetched,
         stall,
         ..
     } = r;
+    fetched += prefetched;
     match image {
         Ok(img) => {
             let st = &img.stats;
@@ -527,7 +528,8 @@ fn finish_tile(
                 time_us: job.assigned.elapsed().as_micros() as u64,
                 voxels_touched: st.voxels_touched,
                 misses: st.misses.min(u64::from(u32::MAX)) as u32,
-                bytes_fetched: bytes_fetched + prefetched,
+                bytes_fetched: fetched.compressed,
+                bytes_raw: fetched.raw,
                 stall_us: stall.as_micros() as u64,
             };
             // One sample per 16 × 16 pixels (2 × 2 in a 32-pixel tile, 8 × 8

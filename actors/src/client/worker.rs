@@ -4,7 +4,7 @@
 //! packet of one tile waits for voxels it traces another; in block mode it
 //! renders one tile at a time and stalls on each miss.
 
-use super::loader::{Shared, TileLoader};
+use super::loader::{Fetched, Shared, TileLoader};
 use dray_protocol::TileRect;
 use dray_trace::camera::Camera;
 use dray_trace::render::{PacketChooser, Packets, RenderSettings};
@@ -36,8 +36,8 @@ pub(crate) struct TileResult {
     pub thread: usize,
     pub job: TileJob,
     pub image: Result<TileImage, LoadError>,
-    /// Compressed voxel bytes fetched on this tile's behalf.
-    pub bytes_fetched: u64,
+    /// Voxel bytes fetched on this tile's behalf.
+    pub fetched: Fetched,
     /// The thread's stall time charged to this tile: time the thread
     /// waited while every tile it had in progress waited for voxels, since
     /// its previous tile finished. Summed over tiles it is the thread's
@@ -75,6 +75,7 @@ async fn run_job(
     let loader = TileLoader {
         shared: &ctx.shared,
         bytes: AtomicU64::new(0),
+        bytes_raw: AtomicU64::new(0),
     };
     let rect = Rect {
         x0: job.tile.x,
@@ -101,7 +102,10 @@ async fn run_job(
         thread: index,
         job,
         image,
-        bytes_fetched: loader.bytes.load(Ordering::Relaxed),
+        fetched: Fetched {
+            compressed: loader.bytes.load(Ordering::Relaxed),
+            raw: loader.bytes_raw.load(Ordering::Relaxed),
+        },
         stall: std::time::Duration::ZERO,
         idle: std::time::Duration::ZERO,
     }

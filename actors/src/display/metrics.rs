@@ -25,8 +25,10 @@ pub struct FrameMetrics {
     pub tiles: u32,
     /// Tiles reassigned (a client lost or too slow).
     pub reassigned: u32,
-    /// Voxel bytes fetched.
+    /// Voxel bytes fetched, compressed.
     pub bytes_fetched: u64,
+    /// The same voxels' bytes after decompression.
+    pub bytes_raw: u64,
     /// Voxel cache misses.
     pub misses: u64,
     /// Voxels entered, summed over tiles.
@@ -40,7 +42,7 @@ pub struct FrameMetrics {
 }
 
 /// The CSV columns, in order.
-pub const CSV_HEADER: &str = "frame,frame_ms,fps,rays,mrays_per_s,tiles,reassigned,bytes_fetched,misses,voxels_touched,cache_hit_rate,stall_ms,tiles_per_client";
+pub const CSV_HEADER: &str = "frame,frame_ms,fps,rays,mrays_per_s,tiles,reassigned,bytes_fetched,bytes_raw,misses,voxels_touched,cache_hit_rate,stall_ms,tiles_per_client";
 
 impl FrameMetrics {
     /// The metrics of `frame` with `stats`, shown `frame_ms` after the
@@ -69,6 +71,7 @@ impl FrameMetrics {
             tiles: stats.tiles,
             reassigned: stats.reassigned,
             bytes_fetched: stats.bytes_fetched,
+            bytes_raw: stats.bytes_raw,
             misses: stats.misses,
             voxels_touched: stats.voxels_touched,
             cache_hit_rate,
@@ -80,7 +83,7 @@ impl FrameMetrics {
     /// One CSV row (no newline), columns as [`CSV_HEADER`].
     pub fn csv_row(&self) -> String {
         format!(
-            "{},{:.3},{:.3},{},{:.3},{},{},{},{},{},{:.6},{:.3},{}",
+            "{},{:.3},{:.3},{},{:.3},{},{},{},{},{},{},{:.6},{:.3},{}",
             self.frame,
             self.frame_ms,
             self.fps,
@@ -89,6 +92,7 @@ impl FrameMetrics {
             self.tiles,
             self.reassigned,
             self.bytes_fetched,
+            self.bytes_raw,
             self.misses,
             self.voxels_touched,
             self.cache_hit_rate,
@@ -168,6 +172,8 @@ pub struct DisplaySummary {
     pub mrays_per_s: f64,
     /// Voxel bytes fetched in all.
     pub total_bytes_fetched: u64,
+    /// The same voxels' bytes after decompression.
+    pub total_bytes_raw: u64,
     /// Cache misses in all.
     pub total_misses: u64,
     /// Voxels touched in all.
@@ -203,6 +209,7 @@ impl DisplaySummary {
             total_rays: 0,
             mrays_per_s: 0.0,
             total_bytes_fetched: 0,
+            total_bytes_raw: 0,
             total_misses: 0,
             total_voxels_touched: 0,
             cache_hit_rate: 1.0,
@@ -219,6 +226,7 @@ impl DisplaySummary {
         // The figures come from a peer (the scheduler): saturating sums.
         self.total_rays = self.total_rays.saturating_add(m.rays);
         self.total_bytes_fetched = self.total_bytes_fetched.saturating_add(m.bytes_fetched);
+        self.total_bytes_raw = self.total_bytes_raw.saturating_add(m.bytes_raw);
         self.total_misses = self.total_misses.saturating_add(m.misses);
         self.total_voxels_touched = self.total_voxels_touched.saturating_add(m.voxels_touched);
         self.total_reassigned = self
@@ -262,10 +270,11 @@ impl DisplaySummary {
             self.max_frame_ms
         );
         s += &format!(
-            "rays {} ({:.2} Mrays/s), voxels fetched {} ({} misses, cache hit rate {:.1} %), stall {:.1} ms, tiles reassigned {}\n",
+            "rays {} ({:.2} Mrays/s), voxels fetched {} ({} decompressed, {} misses, cache hit rate {:.1} %), stall {:.1} ms, tiles reassigned {}\n",
             self.total_rays,
             self.mrays_per_s,
             human_bytes(self.total_bytes_fetched),
+            human_bytes(self.total_bytes_raw),
             self.total_misses,
             self.cache_hit_rate * 100.0,
             self.total_stall_ms,
@@ -301,6 +310,7 @@ impl DisplaySummary {
             "total_rays": self.total_rays,
             "mrays_per_s": finite(self.mrays_per_s),
             "total_bytes_fetched": self.total_bytes_fetched,
+            "total_bytes_raw": self.total_bytes_raw,
             "total_misses": self.total_misses,
             "total_voxels_touched": self.total_voxels_touched,
             "cache_hit_rate": finite(self.cache_hit_rate),
@@ -349,9 +359,12 @@ mod tests {
             misses: 5,
             voxels_touched: 20,
             stall_us: 1500,
+            bytes_fetched: 1000,
+            bytes_raw: 3000,
             ..FrameStats::default()
         };
         let m = FrameMetrics::compute(3, &stats, 100.0);
+        assert_eq!((m.bytes_fetched, m.bytes_raw), (1000, 3000));
         assert_eq!(m.fps, 10.0);
         assert_eq!(m.mrays_per_s, 20.0);
         assert_eq!(m.cache_hit_rate, 0.75);
