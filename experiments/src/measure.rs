@@ -206,11 +206,11 @@ pub const FRAME_COLUMNS: &[FrameColumn] = &[
         unit: "ms",
     },
     FrameColumn {
-        name: "frame_ms_shared",
+        name: "frame_ms_window",
         unit: "ms",
     },
     FrameColumn {
-        name: "fps_shared",
+        name: "fps_window",
         unit: "frames/s",
     },
     FrameColumn {
@@ -226,48 +226,35 @@ pub const FRAME_COLUMNS: &[FrameColumn] = &[
 /// The columns the runner derives per frame and adds to `frames.csv`, in
 /// the order of [`derived`]'s values.
 pub(crate) const DERIVED: [&str; 4] = [
-    "frame_ms_shared",
-    "fps_shared",
+    "frame_ms_window",
+    "fps_window",
     "voxel_mb_per_s",
     "voxel_mb_raw_per_s",
 ];
 
-/// A frame shown less than this after the one before finished while that
-/// one was still rendering, and was shown with it.
-const SAME_INSTANT_MS: f64 = 1.0;
+/// Frames each derived rate is taken over, centred on its frame: frames
+/// are pipelined, so several are often shown within a millisecond of each
+/// other and a single frame's time says little about the rate.
+pub(crate) const WINDOW: usize = 5;
 
-/// Per frame of a run, the [`DERIVED`] columns: its frame time with the
-/// time of frames shown at the same instant shared evenly among them
-/// (their own frame time is about zero, which would make their rates
-/// soar), 1000 over it, and its voxel MB (10^6 bytes) over it, compressed
-/// and after decompression. The shared times sum to the run's.
+/// Per frame of a run, the [`DERIVED`] columns over the [`WINDOW`] frames
+/// around it (fewer at the ends): their mean frame time, 1000 over it, and
+/// their voxel MB (10^6 bytes) over their time, compressed and after
+/// decompression.
 pub(crate) fn derived(frames: &[Frame]) -> Vec<[f64; 4]> {
-    let mut shared = vec![0.0; frames.len()];
-    let mut start = 0;
-    while start < frames.len() {
-        let together = frames[start + 1..]
-            .iter()
-            .take_while(|f| f.frame_ms < SAME_INSTANT_MS)
-            .count();
-        let group = start..start + 1 + together;
-        let ms = frames[group.clone()]
-            .iter()
-            .map(|f| f.frame_ms)
-            .sum::<f64>()
-            / group.len() as f64;
-        shared[group.clone()].fill(ms);
-        start = group.end;
-    }
-    frames
-        .iter()
-        .zip(shared)
-        .map(|(f, ms)| {
-            let per_s = 1e3 / ms.max(1e-3);
+    let half = WINDOW / 2;
+    (0..frames.len())
+        .map(|i| {
+            let around = &frames[i.saturating_sub(half)..(i + half + 1).min(frames.len())];
+            let ms = around.iter().map(|f| f.frame_ms).sum::<f64>().max(1e-3);
+            let mb = |bytes: fn(&Frame) -> u64| {
+                around.iter().map(|f| bytes(f) as f64).sum::<f64>() / 1e6
+            };
             [
-                ms,
-                per_s,
-                f.bytes_fetched as f64 / 1e6 * per_s,
-                f.bytes_raw as f64 / 1e6 * per_s,
+                ms / around.len() as f64,
+                1e3 * around.len() as f64 / ms,
+                mb(|f| f.bytes_fetched) / (ms / 1e3),
+                mb(|f| f.bytes_raw) / (ms / 1e3),
             ]
         })
         .collect()
@@ -362,10 +349,10 @@ mod tests {
         };
         assert_eq!(measure("voxel_mb_raw").unwrap().of(&warm), Some(1.5));
         assert_eq!(derived(&frames[..1]), [[100.0, 10.0, 5.0, 7.5]]);
-        // A frame shown with the one before shares its time.
+        // A frame shown with the one before: the window's mean time.
         let together = [frame(300.0), frame(0.0), frame(100.0)];
-        let shared: Vec<f64> = derived(&together).iter().map(|c| c[0]).collect();
-        assert_eq!(shared, [150.0, 150.0, 100.0]);
+        let window: Vec<f64> = derived(&together).iter().map(|c| c[1]).collect();
+        assert_eq!(window, [7.5, 7.5, 7.5]);
         assert_eq!(format_value(Some(0.5)), "0.5");
         assert_eq!(format_value(Some(12.0)), "12");
         assert_eq!(format_value(None), "");

@@ -111,8 +111,8 @@ fn a_sweep_writes_every_output() {
     let frames = csv_rows(&dir.join(FRAMES_CSV));
     let mut frame_columns: Vec<&str> = dray_actors::display::CSV_HEADER.split(',').collect();
     frame_columns.extend([
-        "frame_ms_shared",
-        "fps_shared",
+        "frame_ms_window",
+        "fps_window",
         "voxel_mb_per_s",
         "voxel_mb_raw_per_s",
     ]);
@@ -195,7 +195,7 @@ fn a_walk_frames_sweep_and_a_plot_over_the_frames() {
         tmp.path(),
         "walks",
         "[sweep]\n\"walk.frames\" = [6, 3]\n\
-         [[plot]]\nx = \"frame\"\ny = [\"fps_shared\", \"voxel_mb_raw_per_s\"]\n\
+         [[plot]]\nx = \"frame\"\ny = [\"fps_window\", \"voxel_mb_raw_per_s\"]\n\
          [[plot]]\nx = \"walk.frames\"\ny = \"voxel_mb_raw\"\n",
     );
     let report = run(&file, &options(tmp.path())).unwrap();
@@ -241,22 +241,35 @@ fn a_walk_frames_sweep_and_a_plot_over_the_frames() {
             "{mb_raw} against {raw}"
         );
     }
-    for f in &frames[1..] {
-        let rate: f64 = f[col("voxel_mb_raw_per_s")].parse().unwrap();
-        let expected = f[col("bytes_raw")].parse::<f64>().unwrap() / 1e6
-            * f[col("fps_shared")].parse::<f64>().unwrap();
-        assert!(
-            (rate - expected).abs() <= 1e-3 * expected.max(1.0),
-            "{rate} against {expected}"
-        );
+    // The per-frame rates are taken over the 5 frames around each frame
+    // of its run.
+    for point in &points[1..] {
+        let mine: Vec<&Vec<String>> = frames[1..]
+            .iter()
+            .filter(|f| f[col("walk.frames")] == point[pcol("walk.frames")])
+            .collect();
+        let num = |f: &Vec<String>, c: &str| f[col(c)].parse::<f64>().unwrap();
+        for (i, f) in mine.iter().enumerate() {
+            let around = &mine[i.saturating_sub(2)..(i + 3).min(mine.len())];
+            let ms: f64 = around.iter().map(|g| num(g, "frame_ms")).sum();
+            let raw: f64 = around.iter().map(|g| num(g, "bytes_raw")).sum();
+            let expected = raw / 1e6 / (ms / 1e3);
+            let rate = num(f, "voxel_mb_raw_per_s");
+            assert!(
+                (rate - expected).abs() <= 1e-3 * expected.max(1.0),
+                "{rate} against {expected}"
+            );
+            let fps = num(f, "fps_window");
+            assert!((fps - 1e3 * around.len() as f64 / ms).abs() <= 1e-3 * fps);
+        }
     }
 
     // Two units: the rate on a right-hand axis.
     assert_valid_plot(
         &dir,
-        "plot1-fps_shared-voxel_mb_raw_per_s-by-frame",
+        "plot1-fps_window-voxel_mb_raw_per_s-by-frame",
         &[
-            "fps_shared (frames/s)",
+            "fps_window (frames/s)",
             "voxel_mb_raw_per_s (MB/s)",
             "walk.frames=6",
         ],
