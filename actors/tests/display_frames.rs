@@ -6,8 +6,8 @@
 use dray_actors::display::{run_display, DisplayOptions, DisplaySummary, CSV_HEADER};
 use dray_actors::{names, ActorError};
 use dray_protocol::{
-    BoundedVec, Camera, ClientFrameStats, FrameDone, FrameStats, Message, Name, PackedF32,
-    PackedU32, Role, Shutdown, TileDone, TilePixels, TileRect, TileStats,
+    BoundedVec, Camera, ClientFrameStats, FrameDone, FrameStats, LinkBytes, Message, Name,
+    PackedF32, PackedU32, Role, Shutdown, TileDone, TilePixels, TileRect, TileStats,
 };
 use dray_runtime::{Delivery, InProcNet, Mailbox};
 use std::time::Duration;
@@ -219,6 +219,13 @@ impl Cluster {
             bytes_raw: 6000,
             voxels_touched: 8,
             stall_us: 20,
+            link: LinkBytes {
+                client_store: 5000,
+                client_scheduler: 700,
+                display: 0,
+                store_uplink: 4900,
+                client_downlink: 5100,
+            },
             clients: BoundedVec::new(clients).unwrap(),
         };
         self.assigner
@@ -357,6 +364,11 @@ async fn display_assembles_frames_from_out_of_order_tiles_and_writes_files() {
         assert_eq!(row[col("voxels_touched")], "8");
         assert_eq!(row[col("cache_hit_rate")].parse::<f64>().unwrap(), 0.75);
         assert_eq!(row[col("stall_ms")].parse::<f64>().unwrap(), 0.02);
+        assert_eq!(row[col("link_client_store")], "5000");
+        assert_eq!(row[col("link_client_downlink")], "5100");
+        // The display's own link to the scheduler: the frame's camera out
+        // and its FrameDone in, counted by the display's transport.
+        assert!(row[col("link_display")].parse::<u64>().unwrap() > 0);
         assert_eq!(row[col("tiles_per_client")], "client-0:3 client-1:3");
         assert!(row[col("frame_ms")].parse::<f64>().unwrap() >= 0.0);
         // The row is the summary's frame, to the CSV's three decimals.

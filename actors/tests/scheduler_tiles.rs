@@ -7,9 +7,9 @@ use dray_actors::scheduler::{
     MAX_QUEUED_FRAMES,
 };
 use dray_protocol::{
-    AssignTile, BoundedVec, Camera, CameraUpdate, FrameAssigned, FrameDone, Message, Name,
-    Reflective, RenderSettings, RequestWork, Role, Shutdown, TileOwners, TileRect, TileReport,
-    TileStats,
+    AssignTile, BoundedVec, Camera, CameraUpdate, FrameAssigned, FrameDone, LinkBytes, Message,
+    Name, Reflective, RenderSettings, RequestWork, Role, Shutdown, TileOwners, TileRect,
+    TileReport, TileStats,
 };
 use dray_runtime::{Bus, InProcNet, Mailbox};
 use std::collections::HashMap;
@@ -106,6 +106,13 @@ fn stats_for(tile: &TileRect, cost: u64, misses: u32) -> TileStats {
         bytes_fetched: 10,
         bytes_raw: 30,
         stall_us: 5,
+        link: LinkBytes {
+            client_store: 40,
+            client_scheduler: 7,
+            display: 0,
+            store_uplink: 35,
+            client_downlink: 45,
+        },
     }
 }
 
@@ -425,6 +432,8 @@ async fn assigns_every_tile_once_and_double_buffers(affinity: bool) {
         assert_eq!(s.bytes_raw, 30 * u64::from(n));
         assert_eq!(s.voxels_touched, 2 * u64::from(n));
         assert_eq!(s.stall_us, 5 * u64::from(n));
+        assert_eq!(s.link.client_store, 40 * u64::from(n));
+        assert_eq!(s.link.client_downlink, 45 * u64::from(n));
         assert!(s.time_us > 0);
         let per: Vec<_> = s.clients.as_slice().to_vec();
         assert_eq!(per.iter().map(|c| c.tiles).sum::<u32>(), n);

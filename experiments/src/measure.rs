@@ -16,6 +16,11 @@ pub(crate) struct Frame {
     pub misses: u64,
     pub voxels_touched: u64,
     pub reassigned: u32,
+    pub link_client_store: u64,
+    pub link_client_scheduler: u64,
+    pub link_display: u64,
+    pub link_store_uplink: u64,
+    pub link_client_downlink: u64,
 }
 
 /// One run's figures, from which each measure is computed.
@@ -111,6 +116,36 @@ pub const MEASURES: &[Measure] = &[
         value: |r| Some(r.sum(|f| f.bytes_raw as f64) / 1e6),
     },
     Measure {
+        name: "link_mb_client_store",
+        unit: "MB",
+        meaning: "bytes the client-store links carried, both ways, 10^6 bytes (`[links.client_store]`)",
+        value: |r| Some(r.sum(|f| f.link_client_store as f64) / 1e6),
+    },
+    Measure {
+        name: "link_mb_client_scheduler",
+        unit: "MB",
+        meaning: "bytes between clients and the scheduler or the display, both ways (`[links.client_scheduler]`: tiles, pixels)",
+        value: |r| Some(r.sum(|f| f.link_client_scheduler as f64) / 1e6),
+    },
+    Measure {
+        name: "link_mb_display",
+        unit: "MB",
+        meaning: "bytes between the display and the scheduler, both ways (`[links.display]`)",
+        value: |r| Some(r.sum(|f| f.link_display as f64) / 1e6),
+    },
+    Measure {
+        name: "link_mb_store_uplink",
+        unit: "MB",
+        meaning: "bytes from the stores into the clients, what crossed the stores' uplinks (`[links.store_uplink]`)",
+        value: |r| Some(r.sum(|f| f.link_store_uplink as f64) / 1e6),
+    },
+    Measure {
+        name: "link_mb_client_downlink",
+        unit: "MB",
+        meaning: "bytes into the clients from any node, what crossed the clients' downlinks (`[links.client_downlink]`)",
+        value: |r| Some(r.sum(|f| f.link_client_downlink as f64) / 1e6),
+    },
+    Measure {
         name: "cache_hit_rate",
         unit: "fraction",
         meaning: "1 - misses / voxels entered, over the measured frames (1 when none was entered)",
@@ -204,6 +239,26 @@ pub const FRAME_COLUMNS: &[FrameColumn] = &[
     FrameColumn {
         name: "stall_ms",
         unit: "ms",
+    },
+    FrameColumn {
+        name: "link_client_store",
+        unit: "bytes",
+    },
+    FrameColumn {
+        name: "link_client_scheduler",
+        unit: "bytes",
+    },
+    FrameColumn {
+        name: "link_display",
+        unit: "bytes",
+    },
+    FrameColumn {
+        name: "link_store_uplink",
+        unit: "bytes",
+    },
+    FrameColumn {
+        name: "link_client_downlink",
+        unit: "bytes",
     },
     FrameColumn {
         name: "frame_ms_window",
@@ -321,6 +376,11 @@ mod tests {
             misses: 1,
             voxels_touched: 4,
             reassigned: 0,
+            link_client_store: 520_000,
+            link_client_scheduler: 90_000,
+            link_display: 2_000,
+            link_store_uplink: 510_000,
+            link_client_downlink: 530_000,
         }
     }
 
@@ -340,6 +400,9 @@ mod tests {
         assert_eq!(v("stall_ms"), Some(4.0));
         assert_eq!(v("voxel_mb"), Some(2.0));
         assert_eq!(v("voxel_mb_raw"), Some(3.0));
+        assert_eq!(v("link_mb_client_store"), Some(2.08));
+        assert_eq!(v("link_mb_display"), Some(0.008));
+        assert_eq!(v("link_mb_client_downlink"), Some(2.12));
         assert_eq!(v("cache_hit_rate"), Some(0.75));
         assert_eq!(v("wall_s"), Some(2.5));
         // The last loop of a warm walk: its frames only.

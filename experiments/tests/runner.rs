@@ -41,7 +41,7 @@ fn runs(points_csv: &Path) -> BTreeSet<Vec<String>> {
         .collect()
 }
 
-const MEASURED: [&str; 11] = [
+const MEASURED: [&str; 16] = [
     "fps",
     "frame_ms_p50",
     "frame_ms_p95",
@@ -50,6 +50,11 @@ const MEASURED: [&str; 11] = [
     "stall_ms",
     "voxel_mb",
     "voxel_mb_raw",
+    "link_mb_client_store",
+    "link_mb_client_scheduler",
+    "link_mb_display",
+    "link_mb_store_uplink",
+    "link_mb_client_downlink",
     "cache_hit_rate",
     "tiles_reassigned",
     "wall_s",
@@ -102,6 +107,14 @@ fn a_sweep_writes_every_output() {
         // Cold caches: every run fetches, and decompressed is larger.
         assert!(value("voxel_mb") > 0.0);
         assert!(value("voxel_mb_raw") > value("voxel_mb"));
+        // Links carry the voxels with their envelopes and the requests for
+        // them, the tiles and their pixels, and the frames' messages.
+        assert!(value("link_mb_client_store") > value("voxel_mb"));
+        assert!(value("link_mb_store_uplink") > value("voxel_mb"));
+        assert!(value("link_mb_client_store") > value("link_mb_store_uplink"));
+        assert!(value("link_mb_client_downlink") > value("link_mb_store_uplink"));
+        assert!(value("link_mb_client_scheduler") > 0.0);
+        assert!(value("link_mb_display") > 0.0);
         assert!((0.0..=1.0).contains(&value("cache_hit_rate")));
         assert!(value("wall_s") > 0.0);
     }

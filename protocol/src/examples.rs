@@ -68,6 +68,13 @@ pub fn one_of_each(voxel_bytes: usize) -> Vec<Message> {
                 bytes_fetched: 123_456,
                 bytes_raw: 400_000,
                 stall_us: 77,
+                link: LinkBytes {
+                    client_store: 124_000,
+                    client_scheduler: 9_000,
+                    display: 0,
+                    store_uplink: 123_800,
+                    client_downlink: 124_100,
+                },
             },
             hits: BoundedVec::new(vec![[0.5, 1.5, -2.0]]).expect("one entry is under the bound"),
         }),
@@ -96,6 +103,13 @@ pub fn one_of_each(voxel_bytes: usize) -> Vec<Message> {
                 bytes_raw: 31_000_000,
                 voxels_touched: 4_000,
                 stall_us: 5,
+                link: LinkBytes {
+                    client_store: 10_100_000,
+                    client_scheduler: 1_200_000,
+                    display: 3_000,
+                    store_uplink: 10_000_000,
+                    client_downlink: 10_050_000,
+                },
                 clients: BoundedVec::new(vec![ClientFrameStats {
                     node: Name::new("client-0").expect("constant name is valid"),
                     tiles: 300,
@@ -132,6 +146,13 @@ pub fn one_of_each(voxel_bytes: usize) -> Vec<Message> {
                 bytes_fetched: 4_000,
                 bytes_raw: 12_500,
                 stall_us: 10,
+                link: LinkBytes {
+                    client_store: 4_100,
+                    client_scheduler: 700,
+                    display: 0,
+                    store_uplink: 4_050,
+                    client_downlink: 4_200,
+                },
             },
             hits: BoundedVec::new(vec![[1.0, -2.5, 3.25], [0.0, 1e9, -7.0]])
                 .expect("two entries are under the bound"),

@@ -145,6 +145,35 @@ pub struct AssignTile {
     pub settings: RenderSettings,
 }
 
+/// Bytes links carried, by link class (the config's `[links.*]`), both
+/// directions; counted as the transports encode and decode messages.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct LinkBytes {
+    /// Between clients and stores.
+    pub client_store: u64,
+    /// Between clients and the scheduler or the display.
+    pub client_scheduler: u64,
+    /// Between the display and the scheduler.
+    pub display: u64,
+    /// From stores into clients: what crossed the stores' uplinks.
+    pub store_uplink: u64,
+    /// Into clients from any node: what crossed the clients' downlinks.
+    pub client_downlink: u64,
+}
+
+impl LinkBytes {
+    /// Both counts added, saturating (a peer may report anything).
+    pub fn saturating_add(self, o: LinkBytes) -> LinkBytes {
+        LinkBytes {
+            client_store: self.client_store.saturating_add(o.client_store),
+            client_scheduler: self.client_scheduler.saturating_add(o.client_scheduler),
+            display: self.display.saturating_add(o.display),
+            store_uplink: self.store_uplink.saturating_add(o.store_uplink),
+            client_downlink: self.client_downlink.saturating_add(o.client_downlink),
+        }
+    }
+}
+
 /// What rendering one tile cost.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 pub struct TileStats {
@@ -165,6 +194,8 @@ pub struct TileStats {
     /// voxels, since the thread's previous tile finished (so the sum over
     /// tiles is the threads' stall time).
     pub stall_us: u64,
+    /// What the client's links carried since its previous finished tile.
+    pub link: LinkBytes,
 }
 
 /// A client returns a rendered tile.
@@ -260,6 +291,9 @@ pub struct FrameStats {
     pub voxels_touched: u64,
     /// Render threads' stall time, summed over clients, microseconds.
     pub stall_us: u64,
+    /// What the links carried (clients' links, summed from their tiles;
+    /// the display's own link added by the display).
+    pub link: LinkBytes,
     /// Per client.
     pub clients: BoundedVec<ClientFrameStats, MAX_STATS_CLIENTS>,
 }
@@ -522,8 +556,8 @@ impl MessageKind {
             | MessageKind::FrameAssigned => ENVELOPE_OVERHEAD,
             MessageKind::TileReport => {
                 ENVELOPE_OVERHEAD + crate::MAX_NAME_LEN + 2 + MAX_REPORT_HITS * 12
-                    // the stats' bytes_raw: a u64 varint
-                    + 10
+                    // the stats' bytes_raw and link bytes: u64 varints
+                    + 6 * 10
             }
             MessageKind::ManifestData => BULK_FRAME_MAX,
             MessageKind::TileOwners => {
@@ -542,14 +576,14 @@ impl MessageKind {
             MessageKind::VoxelError | MessageKind::Shutdown => ENVELOPE_OVERHEAD + text,
             MessageKind::TileDone => {
                 ENVELOPE_OVERHEAD + 3 * (tile_px * 4 + 4) + MAX_REPORT_HITS * 12 + 2
-                    // the stats' bytes_raw: a u64 varint
-                    + 10
+                    // the stats' bytes_raw and link bytes: u64 varints
+                    + 6 * 10
             }
             MessageKind::VoxelLoaded => BULK_FRAME_MAX,
             MessageKind::FrameDone => {
                 ENVELOPE_OVERHEAD + MAX_STATS_CLIENTS * (crate::MAX_NAME_LEN + 1 + 5 * 10) + 2 * 10
-                    // the stats' bytes_raw: a u64 varint
-                    + 10
+                    // the stats' bytes_raw and link bytes: u64 varints
+                    + 6 * 10
             }
             MessageKind::PrefetchHint => ENVELOPE_OVERHEAD + MAX_PREFETCH_IDS * 4 + 4,
             MessageKind::Handshake => crate::HANDSHAKE_FRAME_MAX,

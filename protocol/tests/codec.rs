@@ -234,6 +234,13 @@ fn maximal_messages_fit_their_limits() {
         fov_y_deg: 179.0,
     };
     let text = "é".repeat(MAX_TEXT_LEN / 2);
+    const MAX_LINK: LinkBytes = LinkBytes {
+        client_store: u64::MAX,
+        client_scheduler: u64::MAX,
+        display: u64::MAX,
+        store_uplink: u64::MAX,
+        client_downlink: u64::MAX,
+    };
     let stats = TileStats {
         rays: u64::MAX,
         time_us: u64::MAX,
@@ -242,6 +249,7 @@ fn maximal_messages_fit_their_limits() {
         bytes_fetched: u64::MAX,
         bytes_raw: u64::MAX,
         stall_us: u64::MAX,
+        link: MAX_LINK,
     };
     let client = ClientFrameStats {
         node: long('c'),
@@ -313,6 +321,7 @@ fn maximal_messages_fit_their_limits() {
                 bytes_raw: u64::MAX,
                 voxels_touched: u64::MAX,
                 stall_us: u64::MAX,
+                link: MAX_LINK,
                 clients: BoundedVec::new(vec![client; MAX_STATS_CLIENTS]).unwrap(),
             },
         }),

@@ -2,6 +2,7 @@
 
 use crate::inproc::InProcLink;
 use crate::quic::QuicPeer;
+use crate::traffic::{Traffic, TrafficCounters};
 use dray_protocol::{Address, Envelope, Message, Name, ProtocolError, Role};
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex, MutexGuard, Weak};
@@ -81,7 +82,8 @@ pub(crate) enum PeerLink {
 }
 
 impl PeerLink {
-    async fn send(&self, env: Envelope) -> Result<(), SendError> {
+    /// Sends `env`; returns the bytes of its encoding.
+    async fn send(&self, env: Envelope) -> Result<usize, SendError> {
         match self {
             PeerLink::InProc(l) => l.send(env).await,
             PeerLink::Quic(p) => p.send(env).await,
@@ -102,6 +104,7 @@ pub(crate) struct Inner {
     actors: Mutex<HashMap<Name, mpsc::Sender<Delivery>>>,
     peers: Mutex<HashMap<Name, (PeerLink, Role)>>,
     peers_changed: Notify,
+    traffic: TrafficCounters,
 }
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -172,6 +175,14 @@ impl Inner {
         }
     }
 
+    /// Counts `bytes` of an envelope that arrived from node `from`.
+    pub(crate) fn count_received(&self, from: &Name, bytes: usize) {
+        let role = lock(&self.peers).get(from).map(|(_, r)| *r);
+        if let Some(role) = role {
+            self.traffic.received(role, bytes);
+        }
+    }
+
     pub(crate) fn link_id(link: &PeerLink) -> usize {
         link.id()
     }
@@ -202,6 +213,7 @@ impl Bus {
                 actors: Mutex::new(HashMap::new()),
                 peers: Mutex::new(HashMap::new()),
                 peers_changed: Notify::new(),
+                traffic: TrafficCounters::default(),
             }),
         }
     }
@@ -262,13 +274,20 @@ impl Bus {
             env.msg.validate()?;
             return self.inner.deliver_local(env).await;
         }
-        let link = lock(&self.inner.peers)
-            .get(&to.node)
-            .map(|(l, _)| l.clone());
+        let link = lock(&self.inner.peers).get(&to.node).cloned();
         match link {
-            Some(link) => link.send(env).await,
+            Some((link, role)) => {
+                let bytes = link.send(env).await?;
+                self.inner.traffic.sent(role, bytes);
+                Ok(())
+            }
             None => Err(SendError::PeerUnavailable(to.node.clone())),
         }
+    }
+
+    /// Bytes this node's links have carried so far, by the other end's role.
+    pub fn traffic(&self) -> Traffic {
+        self.inner.traffic.snapshot()
     }
 
     /// Nodes connected now, with their roles.

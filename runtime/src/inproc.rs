@@ -33,20 +33,22 @@ pub(crate) struct InProcLink {
 }
 
 impl InProcLink {
-    pub(crate) async fn send(&self, env: Envelope) -> Result<(), SendError> {
+    /// Sends `env`; returns the bytes of its encoding.
+    pub(crate) async fn send(&self, env: Envelope) -> Result<usize, SendError> {
         let kind = env.msg.kind();
         // Encode exactly as the wire would: same validation, same limits, and
         // the size that shaping charges. The receiver decodes these bytes.
         let body = encode_envelope(&env)?;
+        let dst = self
+            .dst
+            .upgrade()
+            .ok_or_else(|| SendError::PeerUnavailable(self.dst_name.clone()))?;
+        dst.count_received(&env.from.node, body.len());
         let pipe = lock(&self.pipe).clone();
         match pipe {
             None => {
-                let dst = self
-                    .dst
-                    .upgrade()
-                    .ok_or_else(|| SendError::PeerUnavailable(self.dst_name.clone()))?;
                 let env = decode_envelope(&body)?;
-                dst.deliver_local(env).await
+                dst.deliver_local(env).await.map(|()| body.len())
             }
             Some(pipe) => {
                 let lane = if kind.own_stream(body.len()) {
@@ -57,9 +59,11 @@ impl InProcLink {
                 let at = pipe.path.reliable(body.len(), lane);
                 trace!(kind = kind.name(), bytes = body.len(), "shaped send");
                 let env = decode_envelope(&body)?;
+                drop(dst);
                 pipe.tx[lane as usize]
                     .send((at, env))
                     .await
+                    .map(|()| body.len())
                     .map_err(|_| SendError::PeerUnavailable(self.dst_name.clone()))
             }
         }

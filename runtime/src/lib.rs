@@ -24,8 +24,10 @@ pub mod process;
 pub mod quic;
 pub mod relay;
 pub mod shaping;
+mod traffic;
 
 pub use bus::{ActorRef, Bus, BusError, Delivery, Mailbox, SendError};
 pub use dray_protocol::{Address, Message, Name, Role};
 pub use inproc::{InProcNet, NodeLink};
 pub use shaping::LinkShape;
+pub use traffic::{LinkMeter, Traffic};

@@ -135,9 +135,11 @@ pub(crate) struct QuicPeer {
 }
 
 impl QuicPeer {
-    pub(crate) async fn send(&self, env: Envelope) -> Result<(), SendError> {
+    /// Sends `env`; returns the bytes of its encoding.
+    pub(crate) async fn send(&self, env: Envelope) -> Result<usize, SendError> {
         let kind = env.msg.kind();
         let body = encode_envelope(&env)?;
+        let bytes = body.len();
         let fail = |reason: String| SendError::Connection {
             node: self.node.clone(),
             reason,
@@ -158,11 +160,12 @@ impl QuicPeer {
                 .map_err(|e| fail(e.to_string()))?;
             s.finish().map_err(|e| fail(e.to_string()))?;
             trace!(peer = %self.node, kind = kind.name(), "bulk stream sent");
-            Ok(())
+            Ok(bytes)
         } else {
             self.control
                 .send(Bytes::from(body))
                 .await
+                .map(|()| bytes)
                 .map_err(|_| fail("control stream closed".into()))
         }
     }
@@ -664,6 +667,7 @@ async fn deliver(
     let Some(bus) = bus.upgrade() else {
         return Ok(());
     };
+    bus.count_received(peer, body.len());
     let span =
         tracing::trace_span!("recv", kind = kind.name(), from = %env.from, to = %env.to.actor);
     if let Err(e) = bus.deliver_local(env).instrument(span).await {

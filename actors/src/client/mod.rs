@@ -34,7 +34,7 @@ use dray_protocol::{
     Address, AssignTile, BoundedVec, Compression, FetchManifest, Message, PackedF32, PackedU32,
     RequestWork, TileDone, TilePixels, TileStats, MAX_REPORT_HITS,
 };
-use dray_runtime::{ActorRef, Delivery, Mailbox};
+use dray_runtime::{ActorRef, Delivery, LinkMeter, Mailbox};
 use dray_scene::db::manifest::Manifest;
 use dray_trace::scene::TopLevel;
 use dray_trace::tile::MissMode;
@@ -252,6 +252,7 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
     }
 
     let me = mb.handle();
+    let mut links = LinkMeter::new(me.bus().clone());
     let fetches = sender(me.clone(), "voxel fetch");
     // Finished tiles' pixels and the request for as many new tiles go out
     // in this order in one queue, a batch at a time ([`batch`]): the
@@ -420,7 +421,7 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
                     let frame = r.job.frame;
                     batch.finished(
                         frame,
-                        finish_tile(r, prefetched, opts.pixel_compression, &mut summary),
+                        finish_tile(r, prefetched, opts.pixel_compression, &mut links, &mut summary),
                     );
                 }
                 if resized {
@@ -501,11 +502,13 @@ fn job(a: AssignTile, diagonal: f32, isa: dray_trace::render::Isa) -> TileJob {
 
 /// A finished tile's pixels for the display (none if it failed);
 /// `prefetched` bytes (fetched by hints, asked for by no tile) are charged
-/// to it so that frames count every byte fetched.
+/// to it so that frames count every byte fetched, and so is what the
+/// client's links carried since its previous finished tile.
 fn finish_tile(
     r: TileResult,
     prefetched: Fetched,
     compression: Compression,
+    links: &mut LinkMeter,
     summary: &mut ClientSummary,
 ) -> Option<Message> {
     let TileResult {
@@ -531,6 +534,7 @@ fn finish_tile(
                 bytes_fetched: fetched.compressed,
                 bytes_raw: fetched.raw,
                 stall_us: stall.as_micros() as u64,
+                link: links.take(),
             };
             // One sample per 16 × 16 pixels (2 × 2 in a 32-pixel tile, 8 × 8
             // in a block of 4 × 4 such tiles): enough for the scheduler to

@@ -1,7 +1,7 @@
 //! Per-frame metrics, the `metrics.csv` file and the run's summary.
 
 use super::FrameImage;
-use dray_protocol::FrameStats;
+use dray_protocol::{FrameStats, LinkBytes};
 use serde::Serialize;
 use std::fs::File;
 use std::io::{self, Write};
@@ -37,12 +37,22 @@ pub struct FrameMetrics {
     pub cache_hit_rate: f64,
     /// Tiles' stall time waiting for voxels, summed, milliseconds.
     pub stall_ms: f64,
+    /// Bytes the links between clients and stores carried for the frame.
+    pub link_client_store: u64,
+    /// Bytes between clients and the scheduler or the display.
+    pub link_client_scheduler: u64,
+    /// Bytes between the display and the scheduler.
+    pub link_display: u64,
+    /// Bytes from stores into clients (the stores' uplinks).
+    pub link_store_uplink: u64,
+    /// Bytes into clients from any node (the clients' downlinks).
+    pub link_client_downlink: u64,
     /// Tiles per client, e.g. `client-0:150 client-1:150`.
     pub tiles_per_client: String,
 }
 
 /// The CSV columns, in order.
-pub const CSV_HEADER: &str = "frame,frame_ms,fps,rays,mrays_per_s,tiles,reassigned,bytes_fetched,bytes_raw,misses,voxels_touched,cache_hit_rate,stall_ms,tiles_per_client";
+pub const CSV_HEADER: &str = "frame,frame_ms,fps,rays,mrays_per_s,tiles,reassigned,bytes_fetched,bytes_raw,misses,voxels_touched,cache_hit_rate,stall_ms,link_client_store,link_client_scheduler,link_display,link_store_uplink,link_client_downlink,tiles_per_client";
 
 impl FrameMetrics {
     /// The metrics of `frame` with `stats`, shown `frame_ms` after the
@@ -76,14 +86,30 @@ impl FrameMetrics {
             voxels_touched: stats.voxels_touched,
             cache_hit_rate,
             stall_ms: stats.stall_us as f64 / 1e3,
+            link_client_store: stats.link.client_store,
+            link_client_scheduler: stats.link.client_scheduler,
+            link_display: stats.link.display,
+            link_store_uplink: stats.link.store_uplink,
+            link_client_downlink: stats.link.client_downlink,
             tiles_per_client,
+        }
+    }
+
+    /// The bytes each link class carried for the frame.
+    pub fn link(&self) -> LinkBytes {
+        LinkBytes {
+            client_store: self.link_client_store,
+            client_scheduler: self.link_client_scheduler,
+            display: self.link_display,
+            store_uplink: self.link_store_uplink,
+            client_downlink: self.link_client_downlink,
         }
     }
 
     /// One CSV row (no newline), columns as [`CSV_HEADER`].
     pub fn csv_row(&self) -> String {
         format!(
-            "{},{:.3},{:.3},{},{:.3},{},{},{},{},{},{},{:.6},{:.3},{}",
+            "{},{:.3},{:.3},{},{:.3},{},{},{},{},{},{},{:.6},{:.3},{},{},{},{},{},{}",
             self.frame,
             self.frame_ms,
             self.fps,
@@ -97,6 +123,11 @@ impl FrameMetrics {
             self.voxels_touched,
             self.cache_hit_rate,
             self.stall_ms,
+            self.link_client_store,
+            self.link_client_scheduler,
+            self.link_display,
+            self.link_store_uplink,
+            self.link_client_downlink,
             csv_field(&self.tiles_per_client)
         )
     }
@@ -190,6 +221,8 @@ pub struct DisplaySummary {
     pub duplicate_tiles: u64,
     /// Pixels that never arrived in frames shown anyway (a lost tile).
     pub missing_pixels: u64,
+    /// Bytes each link class carried, summed over the frames.
+    pub total_link: LinkBytes,
 }
 
 impl DisplaySummary {
@@ -218,6 +251,7 @@ impl DisplaySummary {
             tiles_ignored: 0,
             duplicate_tiles: 0,
             missing_pixels: 0,
+            total_link: LinkBytes::default(),
         }
     }
 
@@ -233,6 +267,7 @@ impl DisplaySummary {
             .total_reassigned
             .saturating_add(u64::from(m.reassigned));
         self.total_stall_ms += m.stall_ms;
+        self.total_link = self.total_link.saturating_add(m.link());
         self.max_frame_ms = self.max_frame_ms.max(m.frame_ms);
         self.frames.push(m);
     }
@@ -280,6 +315,13 @@ impl DisplaySummary {
             self.total_stall_ms,
             self.total_reassigned
         );
+        let l = &self.total_link;
+        s += &format!(
+            "links carried: client-store {}, client-scheduler/display {}, display-scheduler {}\n",
+            human_bytes(l.client_store),
+            human_bytes(l.client_scheduler),
+            human_bytes(l.display)
+        );
         if self.tiles_ignored > 0 || self.missing_pixels > 0 {
             s += &format!(
                 "tiles ignored {}, pixels missing {}\n",
@@ -319,6 +361,7 @@ impl DisplaySummary {
             "tiles_ignored": self.tiles_ignored,
             "duplicate_tiles": self.duplicate_tiles,
             "missing_pixels": self.missing_pixels,
+            "total_link": self.total_link,
             "frames": self.frames,
         })
     }

@@ -44,7 +44,7 @@ pub use web::WebViewer;
 
 use crate::ActorError;
 use dray_protocol::{Address, CameraUpdate, Message, Ping, TileReport};
-use dray_runtime::{Delivery, Mailbox, SendError};
+use dray_runtime::{Delivery, LinkMeter, Mailbox, SendError};
 use frames::{Frames, ReadyFrame};
 use metrics::CsvLog;
 use std::future::Future;
@@ -239,6 +239,8 @@ struct Display {
     /// Interactive: time spent waiting for a move with nothing in flight,
     /// left out of the frame times and the run's time.
     idle: Duration,
+    /// The display's own link, charged to each frame shown.
+    links: LinkMeter,
 }
 
 impl Display {
@@ -336,10 +338,11 @@ impl Display {
     async fn show(&mut self, ready: ReadyFrame) -> Result<(), ActorError> {
         let ReadyFrame {
             image,
-            stats,
+            mut stats,
             completed_at,
             missing_pixels,
         } = ready;
+        stats.link.display = self.links.take().display;
         // Shown when complete, but never before the frame before it.
         let since = self.last_shown.or(self.started).unwrap_or(completed_at);
         let shown = completed_at.max(since);
@@ -540,6 +543,7 @@ pub async fn run_display_with_viewer(
         moves,
         since_move: 0,
         idle: Duration::ZERO,
+        links: LinkMeter::new(mb.handle().bus().clone()),
     };
     if d.opts.cameras.is_empty() {
         return Ok(d.finish(None));

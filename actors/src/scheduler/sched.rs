@@ -977,6 +977,7 @@ impl Scheduler {
         fs.misses = fs.misses.saturating_add(u64::from(s.misses));
         fs.bytes_fetched = fs.bytes_fetched.saturating_add(s.bytes_fetched);
         fs.bytes_raw = fs.bytes_raw.saturating_add(s.bytes_raw);
+        fs.link = fs.link.saturating_add(s.link);
         fs.voxels_touched = fs
             .voxels_touched
             .saturating_add(u64::from(s.voxels_touched));
