@@ -7,13 +7,13 @@
 //! pages of its own. A far view's packets wait on node loads spread over
 //! the whole model, so fewer TLB misses and denser placement speed up
 //! `dray render` and warm cluster clients (`scripts/bench-kernel`,
-//! `scripts/bench-cluster efficiency`).
+//! `experiments/efficiency.toml`).
 //!
 //! Huge pages only where the voxels stay put ([`no_huge_pages`]): a client
 //! that streams voxels into its cache frees and allocates all the time,
 //! and mimalloc hands freed memory back to the kernel, so each fresh fault
 //! would clear a whole 2 MiB page (`clear_page_erms`), making cold
-//! clients slower than with glibc (`scripts/bench-cluster latency`).
+//! clients slower than with glibc (`experiments/latency-hiding.toml`).
 //!
 //! Why not mimalloc for preprocessing: its memory budget (`--memory-mb`)
 //! holds for the whole process, and mimalloc's huge pages (committed

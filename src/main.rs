@@ -603,8 +603,8 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 // A client decodes voxels on the blocking pool, as many at
                 // once as it has fetches in flight (64 by default): that
                 // many threads on two cores only take turns, so one per
-                // core, at least two (`scripts/bench-cluster efficiency`
-                // and `latency`).
+                // core, at least two (`experiments/efficiency.toml`
+                // and `latency-hiding.toml`).
                 let cores = std::thread::available_parallelism().map_or(2, |n| n.get());
                 rt.max_blocking_threads(cores.max(2));
             }

@@ -381,7 +381,7 @@ pub struct ClientsConfig {
     /// take a fraction of a millisecond) need 16 to 32, which the client
     /// finds by itself (up to `max_tiles_ahead`). Finished tiles leave in
     /// batches of half the tiles asked ahead
-    /// (`scripts/bench-cluster efficiency`).
+    /// (`experiments/efficiency.toml`).
     #[serde(default = "default_tiles_ahead")]
     pub tiles_ahead: u32,
     /// Most tiles a client asks for ahead. Above `tiles_ahead`, a client

@@ -42,6 +42,7 @@ pub(crate) fn run(
                 .map_err(|e| RunFailure::Failed(e.to_string()))?;
             run.display.to_json()
         }
+        Engine::Render => render(cfg).map_err(RunFailure::Failed)?,
         Engine::Cluster => {
             let dray = dray.ok_or_else(|| {
                 RunFailure::Failed("engine \"cluster\" needs the dray binary to start nodes".into())
@@ -66,4 +67,49 @@ pub(crate) fn run(
         return Err(RunFailure::Failed(format!("the run stopped early: {why}")));
     }
     Ok(RunOutput { summary, wall_s })
+}
+
+/// The `render` engine: every frame of the run's cameras traced in this
+/// process with the whole model loaded, on as many threads as the clients
+/// have together, reported as the display reports a cluster's frames
+/// (nothing fetched, no link used). Loading is not timed, as a client's
+/// preload is not.
+fn render(cfg: &Config) -> Result<serde_json::Value, String> {
+    use dray_actors::settings::{kernel_camera, kernel_settings, wire_settings};
+    let db = dray_scene::db::Database::open(&cfg.scene.database)
+        .map_err(|e| format!("scene.database: {e}"))?;
+    let source = dray_trace::scene::ResidentSource::load(&db)
+        .map_err(|e| format!("scene.database: {e}"))?;
+    let top = dray_trace::scene::TopLevel::from_manifest(&db.manifest);
+    let cameras = dray_actors::cluster::frame_cameras(cfg).map_err(|e| e.to_string())?;
+    let threads = (cfg.clients.count as usize).saturating_mul(cfg.clients.threads as usize);
+    let settings = kernel_settings(
+        &wire_settings(&cfg.render),
+        db.manifest.model_bounds.diagonal(),
+        threads,
+        dray_trace::render::Isa::detect(),
+    );
+    let (w, h) = (cfg.render.width, cfg.render.height);
+    let mut frames = Vec::with_capacity(cameras.len());
+    for (i, c) in cameras.iter().enumerate() {
+        let frame = dray_trace::render::render(&top, &source, &kernel_camera(c, w, h), &settings)
+            .map_err(|id| format!("voxel {id} was not loaded"))?;
+        let s = &frame.stats;
+        let stats = dray_protocol::FrameStats {
+            rays: s.primary_rays + s.shadow_rays + s.reflection_rays,
+            time_us: (s.seconds * 1e6) as u64,
+            ..Default::default()
+        };
+        frames.push(dray_actors::display::FrameMetrics::compute(
+            i as u64,
+            &stats,
+            s.seconds * 1e3,
+        ));
+    }
+    let seconds: f64 = frames.iter().map(|f| f.frame_ms).sum::<f64>() / 1e3;
+    Ok(serde_json::json!({
+        "complete": true,
+        "seconds": seconds,
+        "frames": frames,
+    }))
 }

@@ -92,14 +92,14 @@ pub(crate) fn write_walks(
             write_walk(file, path, quick, &walk_file(dir, None)).map(Some)
         }
         Route::Frames(n) => {
-            let path = walkthrough(file, db, *n)?;
+            let path = walkthrough(file, db, *n, walk.inside)?;
             write_walk(file, path, quick, &walk_file(dir, None)).map(Some)
         }
         Route::SweptFrames => {
             let walks = dir.join(WALKS);
             std::fs::create_dir_all(&walks).map_err(|e| ExperimentError::output(&walks, e))?;
             for &n in swept_frames {
-                let path = walkthrough(file, db, n)?;
+                let path = walkthrough(file, db, n, walk.inside)?;
                 write_walk(file, path, quick, &walk_file(dir, Some(n)))?;
             }
             Ok(None)
@@ -107,10 +107,21 @@ pub(crate) fn write_walks(
     }
 }
 
-/// The walkthrough of `dray walkthrough` through the database's model.
-fn walkthrough(file: &Path, db: &Path, frames: u32) -> Result<CameraPath, ExperimentError> {
+/// The walkthrough of `dray walkthrough` through the database's model;
+/// `inside`: only its last stretch (its last two keyframes), a person
+/// walking among the structures, over all `frames`.
+fn walkthrough(
+    file: &Path,
+    db: &Path,
+    frames: u32,
+    inside: bool,
+) -> Result<CameraPath, ExperimentError> {
     let db = Database::open(db).map_err(|e| ExperimentError::invalid(file, "walk.frames", e))?;
-    Ok(CameraPath::walkthrough(&db.manifest.model_bounds, frames))
+    let mut path = CameraPath::walkthrough(&db.manifest.model_bounds, frames);
+    if inside && path.keyframes.len() > 2 {
+        path.keyframes.drain(..path.keyframes.len() - 2);
+    }
+    Ok(path)
 }
 
 /// Writes `path` to `out` (`quick`: a tenth of its frames, along the same

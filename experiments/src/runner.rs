@@ -10,7 +10,7 @@ use crate::overrides::{path_value, BaseConfig, Origin, Override};
 use crate::points::{points, Point};
 use crate::results::{self, write_atomic, FRAMES_CSV, POINTS_CSV};
 use crate::resume;
-use crate::spec::{walk_frames, Engine, Experiment, Route, WALK_FRAMES};
+use crate::spec::{walk_frames, Engine, Experiment, Route, ENGINE, WALK_FRAMES};
 use crate::summary::{self, RunInfo};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use std::collections::HashSet;
@@ -68,7 +68,7 @@ pub struct Report {
 /// Runs the experiment file `file`.
 pub fn run(file: &Path, opts: &Options) -> Result<Report, ExperimentError> {
     let exp = Experiment::load(file)?;
-    if exp.engine == Engine::Cluster && opts.dray.is_none() {
+    if exp.engines().contains(&Engine::Cluster) && opts.dray.is_none() {
         return Err(ExperimentError::invalid(
             &exp.file,
             "engine",
@@ -167,7 +167,7 @@ pub fn run(file: &Path, opts: &Options) -> Result<Report, ExperimentError> {
         let text = toml::to_string(&table).map_err(|e| ExperimentError::output(&config_file, e))?;
         write_atomic(&config_file, text.as_bytes())?;
         match engine::run(
-            exp.engine,
+            exp.engine_of(point.values.iter().map(|(k, v)| (k.as_str(), v))),
             &cfg,
             &config_file,
             opts.dray.as_deref(),
@@ -349,13 +349,16 @@ impl Plan<'_> {
             ),
         ];
         o.extend(self.fixed.iter().cloned());
-        o.extend(point.values.iter().map(|(k, v)| match walk_frames(v) {
-            Some(n) if k == WALK_FRAMES => Override::new(
-                Origin::Sweep,
-                "render.camera_path",
-                path_value(&model::walk_file(self.dir, Some(n))),
-            ),
-            _ => Override::from_file(Origin::Sweep, k, v, exp_dir),
+        // The engine is no config key: the runner picks it per point.
+        o.extend(point.values.iter().filter(|(k, _)| k != ENGINE).map(|(k, v)| {
+            match walk_frames(v) {
+                Some(n) if k == WALK_FRAMES => Override::new(
+                    Origin::Sweep,
+                    "render.camera_path",
+                    path_value(&model::walk_file(self.dir, Some(n))),
+                ),
+                _ => Override::from_file(Origin::Sweep, k, v, exp_dir),
+            }
         }));
         let (cfg, table) = self.base.build(&self.exp.file, &o)?;
         Ok((cfg, table, run_dir))

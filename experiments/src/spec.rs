@@ -21,7 +21,7 @@ use dray_actors::display::CameraPath;
 use serde::Deserialize;
 use std::path::{Path, PathBuf};
 
-/// How the nodes of a run are started.
+/// How the frames of a run are made.
 #[derive(Clone, Copy, Debug, Deserialize, PartialEq, Eq)]
 #[serde(rename_all = "lowercase")]
 pub enum Engine {
@@ -29,7 +29,17 @@ pub enum Engine {
     Sim,
     /// Every node as a process over QUIC (`dray cluster`).
     Cluster,
+    /// No cluster: this process renders every frame with the whole model
+    /// loaded, on as many threads as the clients have together (`dray
+    /// render --path`): the baseline a cluster's efficiency is measured by.
+    Render,
 }
+
+/// Every engine, in the order the documentation lists them.
+pub const ENGINES: [Engine; 3] = [Engine::Sim, Engine::Cluster, Engine::Render];
+
+/// The key that sweeps the engine, like a config key.
+pub const ENGINE: &str = "engine";
 
 impl Engine {
     /// The name the file uses.
@@ -37,7 +47,13 @@ impl Engine {
         match self {
             Engine::Sim => "sim",
             Engine::Cluster => "cluster",
+            Engine::Render => "render",
         }
+    }
+
+    /// The engine called `name`.
+    pub fn from_name(name: &str) -> Option<Engine> {
+        ENGINES.into_iter().find(|e| e.name() == name)
     }
 }
 
@@ -81,6 +97,8 @@ pub struct Walk {
     pub loops: u32,
     /// Only the last loop is measured.
     pub warm: bool,
+    /// A generated walkthrough flies only its part inside the model.
+    pub inside: bool,
 }
 
 /// One `[[plot]]`.
@@ -195,6 +213,7 @@ struct WalkFile {
     frames: Option<u32>,
     loops: Option<u32>,
     warm: Option<bool>,
+    inside: Option<bool>,
 }
 
 /// Most runs per point.
@@ -266,6 +285,9 @@ impl Experiment {
             if key == WALK_FRAMES {
                 check_walk_frames(&file, &values)?;
             }
+            if key == ENGINE {
+                check_engines(&file, &values)?;
+            }
             sweep.push((key, values));
         }
         let frames_swept = sweep.iter().any(|(k, _)| k == WALK_FRAMES);
@@ -276,6 +298,7 @@ impl Experiment {
                 route: Route::SweptFrames,
                 loops: 1,
                 warm: false,
+                inside: false,
             }),
             None => None,
         };
@@ -295,6 +318,26 @@ impl Experiment {
             plots: raw.plot,
             file,
         })
+    }
+
+    /// The engine of a point whose swept values are `values`: the swept
+    /// [`ENGINE`], or the file's.
+    pub fn engine_of<'a>(&self, mut values: impl Iterator<Item = (&'a str, &'a toml::Value)>) -> Engine {
+        values
+            .find(|(k, _)| *k == ENGINE)
+            .and_then(|(_, v)| v.as_str().and_then(Engine::from_name))
+            .unwrap_or(self.engine)
+    }
+
+    /// Every engine some point runs on.
+    pub fn engines(&self) -> Vec<Engine> {
+        match self.sweep.iter().find(|(k, _)| k == ENGINE) {
+            Some((_, values)) => values
+                .iter()
+                .filter_map(|v| v.as_str().and_then(Engine::from_name))
+                .collect(),
+            None => vec![self.engine],
+        }
     }
 
     /// The swept keys, in order.
@@ -400,10 +443,18 @@ fn walk(file: &Path, dir: &Path, w: WalkFile, frames_swept: bool) -> Result<Walk
             format!("{loops} is not in 1..={MAX_LOOPS}"),
         ));
     }
+    let inside = w.inside.unwrap_or(false);
+    if inside && matches!(route, Route::File(_)) {
+        return Err(bad(
+            "walk.inside",
+            "takes part of the generated walkthrough, not of a camera_path".into(),
+        ));
+    }
     Ok(Walk {
         route,
         loops,
         warm: w.warm.unwrap_or(false),
+        inside,
     })
 }
 
@@ -418,6 +469,21 @@ fn check_walk_frames(file: &Path, values: &[toml::Value]) -> Result<(), Experime
                 file,
                 format!("[sweep] {WALK_FRAMES} = {v}"),
                 format!("frames of the walkthrough must be whole numbers in 1..={MAX_FRAMES}"),
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// The swept engines: each a name of one.
+fn check_engines(file: &Path, values: &[toml::Value]) -> Result<(), ExperimentError> {
+    for v in values {
+        if v.as_str().and_then(Engine::from_name).is_none() {
+            let names: Vec<String> = ENGINES.iter().map(|e| format!("{:?}", e.name())).collect();
+            return Err(ExperimentError::invalid(
+                file,
+                format!("[sweep] {ENGINE} = {v}"),
+                format!("is not an engine ({})", names.join(", ")),
             ));
         }
     }

@@ -140,7 +140,11 @@ pub(crate) fn write(
          | commit | {} |\n\n",
         shown(&exp.file).display(),
         shown(&exp.config).display(),
-        exp.engine.name(),
+        exp.engines()
+            .iter()
+            .map(|e| e.name())
+            .collect::<Vec<_>>()
+            .join(", "),
         shown(info.database).display(),
         rows.len(),
         info.runs_total,

@@ -456,7 +456,62 @@ fn an_unknown_engine_is_named() {
     let e = error_of("engine.toml", "engine = \"gpu\"", "");
     assert!(e.contains("engine") && e.contains("gpu"), "{e}");
     // The cluster engine starts dray processes: without the binary, it
-    // cannot run.
+    // cannot run, swept or not.
     let e = error_of("cluster.toml", "engine = \"cluster\"", "");
     assert!(e.contains("engine"), "{e}");
+    let swept = "[walk]\nframes = 2\n[sweep]\nengine = [\"sim\", \"cluster\"]";
+    let e = error_of("swept.toml", "engine = \"sim\"", swept);
+    assert!(e.contains("engine") && e.contains("cluster"), "{e}");
+    let e = error_of(
+        "gpu.toml",
+        "engine = \"sim\"",
+        "[walk]\nframes = 2\n[sweep]\nengine = [\"sim\", \"gpu\"]",
+    );
+    assert!(e.contains("[sweep] engine") && e.contains("gpu"), "{e}");
+}
+
+/// The engine swept like a config key: the same frames from the cluster
+/// in this process and from one process with the whole model loaded.
+#[test]
+fn the_engine_can_be_swept() {
+    let tmp = tempfile::tempdir().unwrap();
+    let file = tiny_experiment(
+        tmp.path(),
+        "engines",
+        "[walk]\nframes = 3\n[sweep]\nengine = [\"sim\", \"render\"]\n\
+         \"clients.max_tiles_ahead\" = [1, 8]\n\
+         [[plot]]\nx = \"clients.max_tiles_ahead\"\ny = \"fps\"\nseries = \"engine\"\n",
+    );
+    let report = run(&file, &options(tmp.path())).unwrap();
+    assert_eq!(report.runs_done, 4);
+    let rows = csv_rows(&report.dir.join(POINTS_CSV));
+    let header = &rows[0];
+    let col = |n: &str| header.iter().position(|h| h == n).unwrap();
+    let mut engines = BTreeSet::new();
+    for row in &rows[1..] {
+        let value = |n: &str| row[col(n)].parse::<f64>().unwrap();
+        assert!(value("fps") > 0.0 && value("mrays_per_s") > 0.0);
+        engines.insert(row[col("engine")].clone());
+        if row[col("engine")] == "render" {
+            // Every voxel is loaded: nothing fetched, no link crossed.
+            assert_eq!(value("voxel_mb"), 0.0);
+            assert_eq!(value("link_mb_client_store"), 0.0);
+        } else {
+            assert!(value("voxel_mb") > 0.0);
+        }
+    }
+    assert_eq!(engines, BTreeSet::from(["render".into(), "sim".into()]));
+    // Both engines traced the same rays for the same frames.
+    let frames = csv_rows(&report.dir.join(FRAMES_CSV));
+    let fcol = |n: &str| frames[0].iter().position(|h| h == n).unwrap();
+    let rays = |engine: &str| -> Vec<String> {
+        frames[1..]
+            .iter()
+            .filter(|f| f[fcol("engine")] == engine && f[fcol("clients.max_tiles_ahead")] == "1")
+            .map(|f| f[fcol("rays")].clone())
+            .collect()
+    };
+    assert_eq!(rays("sim").len(), 3);
+    assert_eq!(rays("sim"), rays("render"));
+    assert_valid_plot(&report.dir, "plot1-fps-by-max_tiles_ahead", &["render", "sim"]);
 }

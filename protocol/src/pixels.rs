@@ -27,7 +27,7 @@ const ZSTD_LEVEL: i32 = 1;
 /// CPU is what counts. Uncompressed costs more CPU than either even over
 /// loopback (every packet is syscalls, encryption and acknowledgements).
 /// zstd's fewer bytes are for slow links (a few tens of Mbit/s a client).
-/// Measured by `scripts/bench-cluster efficiency` and `links`.
+/// Measured by `experiments/efficiency.toml` and `links.toml`.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Compression {

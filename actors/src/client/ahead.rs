@@ -17,12 +17,12 @@
 //! to give (the display is waiting for a frame that another client's
 //! tiles hold up, say), which more tiles ahead would not shorten: growing
 //! then only makes each client take tiles from the other's part of the
-//! image, and fetch their voxels (`scripts/bench-cluster latency`). The
+//! image, and fetch their voxels (`experiments/latency-hiding.toml`). The
 //! round trip is the quickest answer to a request lately ([`RoundTrips`]).
 //!
 //! Holding more tiles must not cost affinity: the scheduler lets a client
 //! take others' tiles only once it holds at most one of its own
-//! (`scripts/bench-cluster affinity`).
+//! (`experiments/affinity-inside.toml`).
 
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};

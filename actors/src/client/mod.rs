@@ -542,7 +542,7 @@ fn finish_tile(
             // is handled about ten times on its way (sampled, sent, passed
             // on by the display, placed, projected into the next cameras,
             // sent to the prefetcher), and denser samples cost the nodes
-            // time without fetching less (`scripts/bench-cluster affinity`).
+            // time without fetching less (`experiments/affinity-inside.toml`).
             let side = job.tile.w.max(job.tile.h);
             let hits: Vec<[f32; 3]> = img
                 .sample_hits(

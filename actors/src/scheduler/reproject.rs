@@ -41,7 +41,7 @@ pub fn votes<K: Ord>(
 /// showed is behind or beside the new eye, as when it passes through a
 /// wall). The farthest hit, not a typical one: walking up to something,
 /// most hits are nearer than a frame's step (half the median distance
-/// would cut most frames of `scripts/bench-cluster affinity`'s walk).
+/// would cut most frames of `experiments/affinity-inside.toml`'s walk).
 pub fn continues(
     then: &CameraBasis,
     now: &CameraBasis,

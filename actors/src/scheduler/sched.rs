@@ -319,7 +319,7 @@ impl Frame {
         // client keeps its part of the screen (its previous tiles), so that
         // the clients stay on the sides of the image whose content they
         // cached as the path goes on; regions grown afresh fetch far more
-        // (`scripts/bench-cluster affinity`).
+        // (`experiments/affinity-inside.toml`).
         let cut = prev.filter(|p| !self.continues_from(p));
         let guide = prev.filter(|_| cut.is_none());
         self.warm = match guide.filter(|p| p.grid == self.grid) {
@@ -336,7 +336,7 @@ impl Frame {
                     // clients, so that the first frames' regions agree
                     // (each grown on its own, the second frame's would
                     // disagree with the first's by chance and, with cold
-                    // caches, fetch far more: `scripts/bench-cluster latency`).
+                    // caches, fetch far more: `experiments/latency-hiding.toml`).
                     None => self.first_guide.clone(),
                 };
                 let n = self.tiles.len();
@@ -569,7 +569,7 @@ impl Frame {
     /// were missing, tiles are slow and uneven, and they go one by one so
     /// that the clients share them evenly (in blocks, a cold walk's first
     /// frames would go out before any hit told where each client's content
-    /// lies, and fetch more: `scripts/bench-cluster latency`). Only a tile
+    /// lies, and fetch more: `experiments/latency-hiding.toml`). Only a tile
     /// of `c`'s own queue or of nobody's comes with a block: a tile taken
     /// from another client's queue comes alone, as that client's cache
     /// holds what it shows. Returns the tiles, row by row, taken out of
@@ -819,7 +819,7 @@ impl Scheduler {
                         // a queue of its own does not need it, and a tile
                         // taken from another's region fetches what its cache
                         // lacks, the more so the more tiles clients hold
-                        // ahead (`scripts/bench-cluster affinity`).
+                        // ahead (`experiments/affinity-inside.toml`).
                         if self.opts.affinity {
                             let held: usize = self.frames.values().map(|f| f.held_by(node)).sum();
                             if held > 1 {

@@ -31,7 +31,7 @@ use glam::Vec3;
 /// Around the centre, not around that point: the point drifts across the
 /// image as the camera turns while it walks, and sectors that stay put
 /// keep their content (fewer voxels fetched than around the point or by
-/// reprojected regions: `scripts/bench-cluster affinity`).
+/// reprojected regions: `experiments/affinity-inside.toml`).
 pub fn assign<N: Ord + Clone>(
     grid: &TileGrid,
     then: &CameraBasis,
@@ -107,7 +107,7 @@ fn flow_focus(moves: impl IntoIterator<Item = ((f32, f32), (f32, f32))>) -> Opti
 /// up, cut into `k` runs of as many tiles each as can be. Two sectors are
 /// the left and right halves, as the image's left and right show different
 /// parts of the model, while its top and bottom share the distant ones
-/// near the horizon (`scripts/bench-cluster affinity` and `latency`).
+/// near the horizon (`experiments/affinity-inside.toml` and `latency-hiding.toml`).
 fn sectors(grid: &TileGrid, focus: (f32, f32), k: usize) -> Vec<usize> {
     let n = grid.count();
     let k = k.max(1);
