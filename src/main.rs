@@ -392,8 +392,10 @@ fn parse_vec3(s: &str) -> Result<Vec3, String> {
 
 #[derive(Subcommand)]
 enum CertsAction {
-    /// Create a cluster CA in DIR and a certificate for every node, named
-    /// from a cluster config (--config) or listed (--nodes).
+    /// Create a cluster CA and a certificate for every node, named from a
+    /// cluster config (--config) or listed (--nodes): DIR/ca.pem and
+    /// DIR/NODE.pem, DIR/NODE.key; the CA key goes to DIR/ca/ca.key (or
+    /// --ca-dir), apart from the node keys and never needed at run time.
     Init {
         dir: PathBuf,
         /// Issue certificates for every node of this cluster config.
@@ -402,7 +404,81 @@ enum CertsAction {
         /// Node names, comma separated (e.g. scheduler,display,store-0,client-0).
         #[arg(long, value_delimiter = ',')]
         nodes: Vec<String>,
+        /// Folder for the CA key (default DIR/ca).
+        #[arg(long)]
+        ca_dir: Option<PathBuf>,
     },
+    /// Issue certificates for more nodes from DIR's existing CA, leaving
+    /// the others' as they are.
+    Add {
+        dir: PathBuf,
+        /// Node names, comma separated.
+        #[arg(long = "node", alias = "nodes", value_delimiter = ',', required = true)]
+        nodes: Vec<String>,
+        /// Folder of the CA key (default DIR/ca).
+        #[arg(long)]
+        ca_dir: Option<PathBuf>,
+    },
+    /// Copy what one node needs at run time (ca.pem, NODE.pem, NODE.key;
+    /// never the CA key) to a folder for its host, to use as its certs.dir.
+    Bundle {
+        dir: PathBuf,
+        /// The node.
+        #[arg(long)]
+        node: String,
+        /// Where to write the bundle (default DIR/bundles/NODE).
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
+}
+
+fn certs(action: CertsAction) -> anyhow::Result<()> {
+    use dray_runtime::certs;
+    match action {
+        CertsAction::Init {
+            dir,
+            config,
+            nodes,
+            ca_dir,
+        } => {
+            let nodes = match config {
+                Some(path) => dray_config::Config::load(&path)?.node_names(),
+                None if nodes.is_empty() => {
+                    bail!("name the nodes with --config CONFIG or --nodes a,b,c")
+                }
+                None => nodes,
+            };
+            let names: Vec<&str> = nodes.iter().map(String::as_str).collect();
+            let written = certs::init_cluster_in(&dir, ca_dir.as_deref(), &names)?;
+            println!(
+                "{}: cluster CA and certificates for {} nodes ({} files); the CA key is {} \
+                 (keep it off the nodes' hosts; give each host `dray certs bundle`)",
+                dir.display(),
+                names.len(),
+                written.len(),
+                certs::ca_key_path(&dir, ca_dir.as_deref()).display()
+            );
+        }
+        CertsAction::Add { dir, nodes, ca_dir } => {
+            let names: Vec<&str> = nodes.iter().map(String::as_str).collect();
+            let written = certs::add_nodes(&dir, ca_dir.as_deref(), &names)?;
+            println!(
+                "{}: certificates for {} more nodes ({} files)",
+                dir.display(),
+                names.len(),
+                written.len()
+            );
+        }
+        CertsAction::Bundle { dir, node, out } => {
+            let out = out.unwrap_or_else(|| dir.join("bundles").join(&node));
+            certs::bundle(&dir, &node, &out)?;
+            println!(
+                "{}: ca.pem, {node}.pem and {node}.key, the certs.dir of {node}'s host",
+                out.display()
+            );
+        }
+    }
+    Ok(())
 }
 
 #[derive(Subcommand)]
@@ -533,25 +609,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 print!("{}", info.to_text());
             }
         }
-        Command::Certs {
-            action: CertsAction::Init { dir, config, nodes },
-        } => {
-            let nodes = match config {
-                Some(path) => dray_config::Config::load(&path)?.node_names(),
-                None if nodes.is_empty() => {
-                    bail!("name the nodes with --config CONFIG or --nodes a,b,c")
-                }
-                None => nodes,
-            };
-            let names: Vec<&str> = nodes.iter().map(String::as_str).collect();
-            let written = dray_runtime::certs::init_cluster(&dir, &names)?;
-            println!(
-                "{}: cluster CA and certificates for {} nodes ({} files)",
-                dir.display(),
-                names.len(),
-                written.len()
-            );
-        }
+        Command::Certs { action } => certs(action)?,
         Command::Render(args) => render(&args)?,
         Command::Demo {
             config,

@@ -234,7 +234,7 @@ fn certs_init_issues_a_certificate_per_node_of_the_config() {
     assert!(out.status.success(), "{}", text(&out));
     for f in [
         "ca.pem",
-        "ca.key",
+        "ca/ca.key",
         "scheduler.pem",
         "scheduler.key",
         "display.pem",
@@ -242,13 +242,60 @@ fn certs_init_issues_a_certificate_per_node_of_the_config() {
     ] {
         assert!(certs.join(f).is_file(), "{f} missing: {}", text(&out));
     }
+    // The CA key is not among the node keys.
+    assert!(!certs.join("ca.key").exists());
     // The CA is never replaced.
     let again = dray(&["certs", "init", s(&certs), "--nodes", "client-9"]);
     assert!(!again.status.success());
-    assert!(text(&again).contains("ca.key"), "{}", text(&again));
+    assert!(text(&again).contains("already exists"), "{}", text(&again));
     let none = dray(&["certs", "init", s(&dir.path().join("x"))]);
     assert!(!none.status.success());
     assert!(text(&none).contains("--nodes"), "{}", text(&none));
+
+    // A node added later, and one node's bundle: no CA key, no other key.
+    let before = std::fs::read(certs.join("client-0.pem")).unwrap();
+    let add = dray(&["certs", "add", s(&certs), "--node", "client-9"]);
+    assert!(add.status.success(), "{}", text(&add));
+    assert!(certs.join("client-9.key").is_file());
+    assert_eq!(std::fs::read(certs.join("client-0.pem")).unwrap(), before);
+    let twice = dray(&["certs", "add", s(&certs), "--node", "client-9"]);
+    assert!(!twice.status.success());
+    assert!(
+        text(&twice).contains("client-9.pem already exists"),
+        "{}",
+        text(&twice)
+    );
+    let out_dir = dir.path().join("host-9");
+    let b = dray(&[
+        "certs",
+        "bundle",
+        s(&certs),
+        "--node",
+        "client-9",
+        "--out",
+        s(&out_dir),
+    ]);
+    assert!(b.status.success(), "{}", text(&b));
+    let mut files: Vec<String> = std::fs::read_dir(&out_dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .collect();
+    files.sort();
+    assert_eq!(files, ["ca.pem", "client-9.key", "client-9.pem"]);
+    let unknown = dray(&["certs", "bundle", s(&certs), "--node", "client-5"]);
+    assert!(!unknown.status.success());
+    assert!(
+        text(&unknown).contains("client-5.pem"),
+        "{}",
+        text(&unknown)
+    );
+    let no_ca = dray(&["certs", "add", s(&out_dir), "--node", "client-8"]);
+    assert!(!no_ca.status.success());
+    assert!(
+        text(&no_ca).contains("the CA key is missing"),
+        "{}",
+        text(&no_ca)
+    );
 }
 
 /// Logs written to a file or a pipe are plain text: no ANSI colour codes,

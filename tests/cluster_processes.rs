@@ -1,13 +1,15 @@
 //! `dray cluster`: every node a process over QUIC with mutual TLS. Killing
 //! a client mid-walkthrough loses no tile, a store that dies is restarted
-//! and survived, and a stranger whose certificate is not from the cluster
-//! CA is refused while the cluster goes on.
+//! and survived, a stranger whose certificate is not from the cluster CA
+//! is refused while the cluster goes on, as are a second connection under
+//! a client's name and a client's Shutdown; a node with another CA's
+//! certificate stops the cluster at once, saying why.
 
 mod common;
 
 use common::*;
 use dray_protocol::{Name, Role};
-use dray_runtime::certs::{init_cluster, NodeIdentity};
+use dray_runtime::certs::{add_nodes, init_cluster, NodeIdentity};
 use dray_runtime::quic::QuicTransport;
 use dray_runtime::Bus;
 use std::io::{BufRead, BufReader};
@@ -267,4 +269,141 @@ fn a_node_that_dies_while_the_cluster_comes_up_stops_it_at_once_naming_the_node(
     // Well before the 120 s startup timeout.
     assert!(elapsed < Duration::from_secs(60), "took {elapsed:?}");
     drop(dir);
+}
+
+#[test]
+fn a_twin_of_a_client_and_a_clients_shutdown_change_nothing() {
+    let frames = 60;
+    let (dir, config) = setup(frames, 2);
+    let cfg = dray_config::Config::load(&config).unwrap();
+    let scheduler = cfg.scheduler_addr().unwrap();
+    let display = cfg.display_addr().unwrap();
+    let store = cfg.store_addrs().unwrap()[0];
+    let (cluster, rx) = start_cluster(&config);
+    until(&rx, |l| {
+        l.starts_with("all ") && l.ends_with("nodes joined")
+    });
+    wait_for_frames(dir.path(), 2);
+    // A node added to the running cluster's CA, which the nodes have
+    // never heard of, gets in (as a client).
+    add_nodes(&cfg.certs.dir, None, &["client-9"]).unwrap();
+    let n = |s: &str| Name::new(s).unwrap();
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    rt.block_on(async {
+        let guard = Duration::from_secs(60);
+        // client-0 started a second time (the same --index on two hosts):
+        // refused by the scheduler and the display, which keep the first.
+        let twin_bus = Bus::new(n("client-0"), Role::Client);
+        let id = NodeIdentity::load(&cfg.certs.dir, &n("client-0")).unwrap();
+        let twin = QuicTransport::start(&twin_bus, &id, "127.0.0.1:0".parse().unwrap())
+            .await
+            .unwrap();
+        twin.connect(n("scheduler"), scheduler);
+        twin.connect(n("display"), display);
+        for peer in ["scheduler", "display"] {
+            let why = tokio::time::timeout(guard, async {
+                loop {
+                    if let Some(e) = twin.dial_error(&n(peer)) {
+                        break e;
+                    }
+                    tokio::time::sleep(Duration::from_millis(20)).await;
+                }
+            })
+            .await
+            .expect("the twin's dial neither failed nor succeeded");
+            assert!(why.contains("already connected"), "{peer}: {why}");
+        }
+        assert!(twin_bus.peers().is_empty());
+        twin.shutdown().await;
+
+        // A client tells the scheduler's actors and a store to stop.
+        let bus = Bus::new(n("client-9"), Role::Client);
+        let id = NodeIdentity::load(&cfg.certs.dir, &n("client-9")).unwrap();
+        let t = QuicTransport::start(&bus, &id, "127.0.0.1:0".parse().unwrap())
+            .await
+            .unwrap();
+        t.connect(n("scheduler"), scheduler);
+        t.connect(n("store-0"), store);
+        for peer in ["scheduler", "store-0"] {
+            tokio::time::timeout(guard, t.wait_connected(&n(peer)))
+                .await
+                .expect("an added node did not connect")
+                .unwrap();
+        }
+        let mut mb = bus.mailbox(n("rogue"), 16).unwrap();
+        let stop = || {
+            dray_protocol::Message::Shutdown(dray_protocol::Shutdown {
+                reason: "a client says so".into(),
+            })
+        };
+        use dray_actors::names;
+        for to in [
+            names::scheduler(),
+            names::assigner(),
+            names::prefetcher(),
+            names::store(0),
+        ] {
+            mb.send(&to, stop()).await.unwrap();
+        }
+        // The store answers a ping sent behind the shutdown on the same
+        // stream: it has read (and refused) the shutdown.
+        let ping = dray_protocol::Message::Ping(dray_protocol::Ping { seq: 1 });
+        mb.send(&names::store(0), ping).await.unwrap();
+        let pong = tokio::time::timeout(guard, mb.recv_message())
+            .await
+            .expect("the store did not answer");
+        assert!(
+            matches!(pong, Some((_, dray_protocol::Message::Pong(_)))),
+            "{pong:?}"
+        );
+        t.shutdown().await;
+    });
+    let shown_when_told = std::fs::read_to_string(dir.path().join("out").join("metrics.csv"))
+        .map_or(0, |t| t.lines().count().saturating_sub(1));
+    assert!(
+        shown_when_told < frames as usize,
+        "the walk ended before the test could disturb it"
+    );
+    let (summary, _) = finish(cluster, &rx);
+    assert_complete(&summary, frames as usize);
+    // Both real clients rendered to the end.
+    let last = &summary["frames"].as_array().unwrap()[frames as usize - 1];
+    let by = last["tiles_per_client"].as_str().unwrap();
+    assert!(by.contains("client-0") && by.contains("client-1"), "{by}");
+}
+
+#[test]
+fn a_node_with_another_cas_certificate_stops_the_cluster_saying_why() {
+    let (dir, config) = setup(10, 2);
+    let cfg = dray_config::Config::load(&config).unwrap();
+    let names = cfg.node_names();
+    let refs: Vec<&str> = names.iter().map(String::as_str).collect();
+    init_cluster(&cfg.certs.dir, &refs).unwrap();
+    // client-1's certificate and key from another CA (next to the
+    // cluster's ca.pem).
+    let other = dir.path().join("other-ca");
+    init_cluster(&other, &["client-1"]).unwrap();
+    for f in ["client-1.pem", "client-1.key"] {
+        std::fs::copy(other.join(f), cfg.certs.dir.join(f)).unwrap();
+    }
+    let out = Command::new(env!("CARGO_BIN_EXE_dray"))
+        .args(["cluster", config.to_str().unwrap()])
+        .env("RUST_LOG", "warn")
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success(),
+        "the cluster ran with a foreign client"
+    );
+    assert!(
+        stderr.contains("client-1 died (exit code 1, before the cluster came up)"),
+        "{stderr}"
+    );
+    assert!(stderr.contains("unknown issuer"), "{stderr}");
+    assert!(
+        stderr.contains("refused the certificate of client-1"),
+        "{stderr}"
+    );
+    assert!(!stderr.contains("did not come up"), "{stderr}");
 }

@@ -653,7 +653,9 @@ pub async fn node(
             .map_err(|m| node_err(&me, m))?;
     }
     for peer in links.dialed.clone() {
-        wait_logged(&bus, &peer).await;
+        wait_logged(&transport, &bus, &peer)
+            .await
+            .map_err(|e| node_err(&me, e))?;
     }
     if role == Role::Display {
         // The walk starts once every client has joined.
@@ -685,14 +687,18 @@ enum RoleBoxes {
     One(Mailbox),
 }
 
-async fn wait_logged(bus: &Bus, peer: &Name) {
+/// Waits for the connection to `peer`, saying every few seconds why the
+/// last dial failed; fails at once when the certificates do not match
+/// (another CA), which waiting cannot mend.
+async fn wait_logged(transport: &QuicTransport, bus: &Bus, peer: &Name) -> Result<(), String> {
     let mut waited = 0u32;
     loop {
-        match tokio::time::timeout(Duration::from_secs(5), bus.wait_for_peer(peer)).await {
-            Ok(()) => return,
+        match tokio::time::timeout(Duration::from_secs(5), transport.wait_connected(peer)).await {
+            Ok(r) => return r.map_err(|e| e.to_string()),
             Err(_) => {
                 waited += 5;
-                warn!(node = %bus.node(), %peer, seconds = waited, "still waiting for a connection");
+                let last = transport.dial_error(peer).unwrap_or_default();
+                warn!(node = %bus.node(), %peer, seconds = waited, last_error = %last, "still waiting for a connection");
             }
         }
     }

@@ -124,7 +124,7 @@ async fn corrupt_and_refused_voxels_are_fetched_again() {
         let client = tokio::spawn(run_client(mb, opts));
         let out = render_frame(&mut fe, &db.db, &names::client(0), capacity, false).await;
         let summary = client.await.unwrap().unwrap();
-        fe.scheduler
+        fe.display
             .send(
                 &names::store(0),
                 Message::Shutdown(Shutdown {

@@ -117,7 +117,7 @@ async fn render_once(
             "the frame was done before the store came back"
         );
     }
-    fe.scheduler
+    fe.display
         .send(
             &names::store(0),
             Message::Shutdown(Shutdown {

@@ -97,6 +97,8 @@ fn name(s: &str) -> Name {
 struct Cluster {
     _net: InProcNet,
     assigner: Mailbox,
+    /// Next to the display, on its node: what stops it.
+    control: Mailbox,
     /// Gets the display's tile reports.
     scheduler: Mailbox,
     clients: Vec<Mailbox>,
@@ -108,6 +110,7 @@ fn start(frames: usize, ahead: usize, output: Option<std::path::PathBuf>) -> Clu
     let sched = net.add_node(name("scheduler"), Role::Scheduler).unwrap();
     let disp = net.add_node(name("display"), Role::Display).unwrap();
     let assigner = sched.mailbox(name(names::ASSIGNER), 256).unwrap();
+    let control = disp.mailbox(name("control"), 4).unwrap();
     let scheduler = sched.mailbox(name(names::SCHEDULER), 4096).unwrap();
     let clients = (0..2)
         .map(|i| {
@@ -134,6 +137,7 @@ fn start(frames: usize, ahead: usize, output: Option<std::path::PathBuf>) -> Clu
     Cluster {
         _net: net,
         assigner,
+        control,
         scheduler,
         clients,
         display: Some(tokio::spawn(run_display(mb, opts))),
@@ -471,7 +475,7 @@ async fn display_returns_what_it_has_on_shutdown() {
     assert_eq!(c.camera().await, 1);
     c.deliver(0, false).await;
     assert_eq!(c.camera().await, 2);
-    c.assigner
+    c.control
         .send(
             &names::display(),
             Message::Shutdown(Shutdown {

@@ -55,6 +55,10 @@ fn start_cam() -> Camera {
 struct Fixture {
     _net: InProcNet,
     assigner: Mailbox,
+    /// Next to the display, on its node: what stops it.
+    control: Mailbox,
+    /// Sends the tiles (only a client may).
+    client: Mailbox,
     web: SocketAddr,
     display: JoinHandle<Result<DisplaySummary, ActorError>>,
 }
@@ -70,6 +74,12 @@ async fn start(stop: impl std::future::Future<Output = ()> + Send + 'static) -> 
     let sched = net.add_node(name("scheduler"), Role::Scheduler).unwrap();
     let disp = net.add_node(name("display"), Role::Display).unwrap();
     let assigner = sched.mailbox(name(names::ASSIGNER), 64).unwrap();
+    let control = disp.mailbox(name("control"), 4).unwrap();
+    let client = net
+        .add_node(names::client_node(0), Role::Client)
+        .unwrap()
+        .mailbox(name(names::CLIENT), 4)
+        .unwrap();
     let mb = disp.mailbox(name(names::DISPLAY), 64).unwrap();
     let opts = DisplayOptions {
         assigner: names::assigner(),
@@ -87,6 +97,8 @@ async fn start(stop: impl std::future::Future<Output = ()> + Send + 'static) -> 
     Fixture {
         _net: net,
         assigner,
+        control,
+        client,
         web,
         display: tokio::spawn(run_display_with_viewer(
             mb,
@@ -132,10 +144,7 @@ impl Fixture {
             hits: Default::default(),
         };
         let d = names::display();
-        self.assigner
-            .send(&d, Message::TileDone(tile))
-            .await
-            .unwrap();
+        self.client.send(&d, Message::TileDone(tile)).await.unwrap();
         let done = FrameDone {
             frame,
             stats: Default::default(),
@@ -224,7 +233,7 @@ async fn display_interactive_follows_moves_from_the_web_viewer() {
     tokio::time::sleep(Duration::from_millis(100)).await;
 
     // A Shutdown ends the run, with the frames shown so far.
-    f.assigner
+    f.control
         .send(
             &names::display(),
             Message::Shutdown(Shutdown {

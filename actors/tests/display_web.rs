@@ -163,6 +163,14 @@ async fn display_web_viewer_shows_the_displays_latest_frame() {
     let mb = disp
         .mailbox(Name::new(names::DISPLAY).unwrap(), 64)
         .unwrap();
+    // Next to the display, on its node: what stops it.
+    let control = disp.mailbox(Name::new("control").unwrap(), 4).unwrap();
+    // Tiles come from a client (the only role that may send them).
+    let client = net
+        .add_node(names::client_node(0), Role::Client)
+        .unwrap()
+        .mailbox(Name::new(names::CLIENT).unwrap(), 4)
+        .unwrap();
     let cam = Camera {
         eye: [0.0, 0.0, -5.0],
         look: [0.0; 3],
@@ -198,7 +206,7 @@ async fn display_web_viewer_shows_the_displays_latest_frame() {
     }
     assert_eq!(seq, Some(0));
     let rgba: Vec<[u8; 4]> = (0..32u8).map(|i| [i, 2 * i, 3 * i, 255]).collect();
-    assigner
+    client
         .send(
             &names::display(),
             Message::TileDone(TileDone {
@@ -242,7 +250,7 @@ async fn display_web_viewer_shows_the_displays_latest_frame() {
     let (_, _, body) = get(addr, "/metrics.json").await;
     let j: serde_json::Value = serde_json::from_slice(&body).unwrap();
     assert_eq!(j["frame"], 0);
-    assigner
+    control
         .send(
             &names::display(),
             Message::Shutdown(Shutdown {

@@ -33,6 +33,14 @@ async fn ask_for_every_voxel(mb: &dray_runtime::Mailbox, to: &dray_protocol::Add
     }
 }
 
+/// A mailbox on the display's node, the one node that may stop a store.
+fn stopper(net: &InProcNet) -> dray_runtime::Mailbox {
+    net.add_node(name("display"), Role::Display)
+        .unwrap()
+        .mailbox(name("control"), 4)
+        .unwrap()
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn serves_every_voxel_as_stored_and_refuses_unknown_ids() {
     let db = plant_db(20_000);
@@ -82,14 +90,15 @@ async fn serves_every_voxel_as_stored_and_refuses_unknown_ids() {
     }
     mb.send(&to, Message::Ping(Ping { seq: 9 })).await.unwrap();
     assert_eq!(next(&mut mb).await, Message::Pong(Ping { seq: 9 }));
-    mb.send(
-        &to,
-        Message::Shutdown(Shutdown {
-            reason: "done".into(),
-        }),
-    )
-    .await
-    .unwrap();
+    stopper(&net)
+        .send(
+            &to,
+            Message::Shutdown(Shutdown {
+                reason: "done".into(),
+            }),
+        )
+        .await
+        .unwrap();
     let summary = store.await.unwrap().unwrap();
     assert_eq!(summary.served, u64::from(n));
     assert_eq!(
@@ -134,16 +143,15 @@ async fn a_shard_serves_its_voxels_only() {
             other => panic!("unexpected {other:?}"),
         }
     }
-    drop(mb);
-    mb = bus.mailbox(name("other"), 16).unwrap();
-    mb.send(
-        &to,
-        Message::Shutdown(Shutdown {
-            reason: "done".into(),
-        }),
-    )
-    .await
-    .unwrap();
+    stopper(&net)
+        .send(
+            &to,
+            Message::Shutdown(Shutdown {
+                reason: "done".into(),
+            }),
+        )
+        .await
+        .unwrap();
     let summary = store.await.unwrap().unwrap();
     assert_eq!(summary.served + summary.refused, u64::from(n));
     assert_eq!(summary.refused, u64::from(n.div_ceil(2)));
@@ -186,8 +194,7 @@ async fn a_peer_that_does_not_take_its_voxels_holds_at_most_max_concurrent_in_me
     let to = names::store(0);
     ask_for_every_voxel(&slow, &to, n).await;
     tokio::time::sleep(Duration::from_millis(500)).await;
-    let other = bus.mailbox(name("other"), 16).unwrap();
-    other
+    stopper(&net)
         .send(
             &to,
             Message::Shutdown(Shutdown {

@@ -267,6 +267,42 @@ pub enum Role {
     Tool,
 }
 
+impl Role {
+    /// Every role.
+    pub const ALL: [Role; 5] = [
+        Role::Scheduler,
+        Role::Client,
+        Role::Store,
+        Role::Display,
+        Role::Tool,
+    ];
+
+    /// The roles of the cluster's nodes (every role but [`Role::Tool`]).
+    pub const CLUSTER: [Role; 4] = [Role::Scheduler, Role::Client, Role::Store, Role::Display];
+
+    /// The role a node's name gives it: `scheduler`, `display`, `store-I`
+    /// and `client-I` (I a decimal number) are the cluster's nodes; any
+    /// other name is a [`Role::Tool`]. A node's role is never taken from
+    /// what it says about itself: its certificate names it, and the name
+    /// fixes the role, so the sender rules
+    /// ([`MessageKind::may_send`](crate::MessageKind::may_send)) hold
+    /// against the authenticated identity.
+    pub fn of_node(node: &Name) -> Role {
+        let indexed = |prefix: &str| {
+            node.as_str()
+                .strip_prefix(prefix)
+                .is_some_and(|i| !i.is_empty() && i.bytes().all(|b| b.is_ascii_digit()))
+        };
+        match node.as_str() {
+            "scheduler" => Role::Scheduler,
+            "display" => Role::Display,
+            _ if indexed("store-") => Role::Store,
+            _ if indexed("client-") => Role::Client,
+            _ => Role::Tool,
+        }
+    }
+}
+
 impl std::fmt::Display for Role {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         let s = match self {

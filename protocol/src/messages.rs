@@ -1,7 +1,7 @@
 //! The actor messages and their limits.
 
 use crate::{
-    Blob, BoundedVec, Name, PackedF32, PackedU32, ProtocolError, TilePixels, VoxelId,
+    Blob, BoundedVec, Name, PackedF32, PackedU32, ProtocolError, Role, TilePixels, VoxelId,
     BULK_FRAME_MAX, ENVELOPE_OVERHEAD, MAX_IMAGE_SIDE, MAX_PREFETCH_IDS, MAX_REFLECTION_DEPTH,
     MAX_STATS_CLIENTS, MAX_TEXT_LEN, MAX_TILE_SIDE,
 };
@@ -428,6 +428,7 @@ pub struct TileOwners {
 }
 
 /// Every actor message. The variant order is the wire tag: append only.
+/// Who may send which kind to whom: [`MessageKind::may_send`].
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub enum Message {
     /// Client → scheduler.
@@ -452,7 +453,7 @@ pub enum Message {
     Ping(Ping),
     /// Answer to a ping.
     Pong(Ping),
-    /// Any → any.
+    /// Display's node → scheduler, stores, clients.
     Shutdown(Shutdown),
     /// Client or prefetcher → store.
     FetchManifest(FetchManifest),
@@ -613,6 +614,81 @@ impl MessageKind {
                 | MessageKind::ManifestData
                 | MessageKind::TileOwners
         )
+    }
+
+    /// The sender rule: whether a node of role `from` may send a message
+    /// of this kind to a node of role `to`. This is the one place the rule
+    /// lives (docs/design.md's message table is checked against it); the
+    /// receiving node applies it to every message from another node, with
+    /// the sender's role taken from its authenticated name
+    /// ([`Role::of_node`]), and drops what it forbids. Tools (tests,
+    /// benchmarks) may ping anyone and send each other anything; no
+    /// cluster node is a tool.
+    pub fn may_send(self, from: Role, to: Role) -> bool {
+        use Role::{Client, Display, Scheduler, Store, Tool};
+        if from == Tool && to == Tool {
+            return self != MessageKind::Handshake;
+        }
+        match self {
+            MessageKind::RequestWork => from == Client && to == Scheduler,
+            MessageKind::AssignTile | MessageKind::PrefetchHint => {
+                from == Scheduler && to == Client
+            }
+            MessageKind::TileDone => from == Client && to == Display,
+            MessageKind::FetchVoxel => from == Client && to == Store,
+            MessageKind::VoxelLoaded | MessageKind::VoxelError => from == Store && to == Client,
+            // The display's camera to the assigner; the assigner's copy to
+            // the prefetcher, on the same node.
+            MessageKind::CameraUpdate => matches!(from, Display | Scheduler) && to == Scheduler,
+            MessageKind::FrameDone => from == Scheduler && to == Display,
+            MessageKind::Ping | MessageKind::Pong => true,
+            // Only the display's node ends a run.
+            MessageKind::Shutdown => from == Display && matches!(to, Scheduler | Store | Client),
+            // Clients and the scheduler's prefetcher read the manifest.
+            MessageKind::FetchManifest => matches!(from, Client | Scheduler) && to == Store,
+            MessageKind::ManifestData => from == Store && matches!(to, Client | Scheduler),
+            // The display reports tiles whose pixels it has; a client may
+            // report its own (the scheduler checks that it is its own).
+            MessageKind::TileReport => matches!(from, Display | Client) && to == Scheduler,
+            // Between the scheduler node's own actors.
+            MessageKind::FrameStart | MessageKind::FrameAssigned | MessageKind::TileOwners => {
+                from == Scheduler && to == Scheduler
+            }
+            MessageKind::Handshake => false,
+        }
+    }
+
+    /// The sender rule in words, over the cluster's roles, as
+    /// docs/design.md's message table shows it: `any → any`, or per
+    /// sender `from → to, to`, senders separated by `; `.
+    pub fn rule_text(self) -> String {
+        let pairs = |from: Role| -> Vec<Role> {
+            Role::CLUSTER
+                .into_iter()
+                .filter(|&to| self.may_send(from, to))
+                .collect()
+        };
+        if Role::CLUSTER
+            .iter()
+            .all(|&f| pairs(f).len() == Role::CLUSTER.len())
+        {
+            return "any → any".into();
+        }
+        let parts: Vec<String> = Role::CLUSTER
+            .into_iter()
+            .filter_map(|from| {
+                let to = pairs(from);
+                (!to.is_empty()).then(|| {
+                    let to: Vec<String> = to.iter().map(Role::to_string).collect();
+                    format!("{from} → {}", to.join(", "))
+                })
+            })
+            .collect();
+        if parts.is_empty() {
+            "nobody".into()
+        } else {
+            parts.join("; ")
+        }
     }
 
     /// A short lowercase name, for logs and spans.

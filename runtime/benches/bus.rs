@@ -39,8 +39,8 @@ struct Pair {
 
 fn inproc(shape: Option<LinkShape>) -> Pair {
     let net = InProcNet::new();
-    let a = net.add_node(name("node-a"), Role::Client).expect("node");
-    let b = net.add_node(name("node-b"), Role::Store).expect("node");
+    let a = net.add_node(name("node-a"), Role::Tool).expect("node");
+    let b = net.add_node(name("node-b"), Role::Tool).expect("node");
     if let Some(s) = shape {
         net.set_shape(a.node(), b.node(), s).expect("shape");
     }
@@ -55,8 +55,8 @@ fn inproc(shape: Option<LinkShape>) -> Pair {
 async fn quic(shape: Option<LinkShape>) -> Pair {
     let ca = ClusterCa::generate().expect("ca");
     let lo: SocketAddr = "127.0.0.1:0".parse().expect("addr");
-    let a = Bus::new(name("node-a"), Role::Client);
-    let b = Bus::new(name("node-b"), Role::Store);
+    let a = Bus::new(name("node-a"), Role::Tool);
+    let b = Bus::new(name("node-b"), Role::Tool);
     let ta = QuicTransport::start(&a, &ca.issue(a.node()).expect("cert"), lo)
         .await
         .expect("quic a");

@@ -7,7 +7,7 @@ use dray_protocol::{Address, Envelope, Message, Name, ProtocolError, Role};
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex, MutexGuard, Weak};
 use tokio::sync::{mpsc, Notify};
-use tracing::{debug, warn};
+use tracing::{debug, error, warn};
 
 /// What an actor receives.
 #[derive(Clone, Debug, PartialEq)]
@@ -96,6 +96,21 @@ impl PeerLink {
             PeerLink::Quic(p) => Arc::as_ptr(p) as *const () as usize,
         }
     }
+
+    /// Where the link leads, for logs.
+    pub(crate) fn remote(&self) -> String {
+        match self {
+            PeerLink::InProc(_) => "in-process".into(),
+            PeerLink::Quic(p) => p.remote().to_string(),
+        }
+    }
+}
+
+/// Why [`Inner::peer_up`] refused a link: the node already has a live one.
+#[derive(Debug)]
+pub(crate) struct AlreadyConnected {
+    /// Where the live link leads.
+    pub(crate) remote: String,
 }
 
 pub(crate) struct Inner {
@@ -129,6 +144,30 @@ impl Inner {
         .map_err(|_| SendError::NoSuchActor(to))
     }
 
+    /// Delivers an envelope that came over a link from a node of role
+    /// `from_role` (as its authenticated name gives it), if the sender rule
+    /// allows it; a forbidden message is dropped with a warning and the
+    /// link goes on.
+    pub(crate) async fn deliver_remote(
+        &self,
+        from_role: Role,
+        env: Envelope,
+    ) -> Result<(), SendError> {
+        let kind = env.msg.kind();
+        if !kind.may_send(from_role, self.role) {
+            warn!(
+                sender = %env.from,
+                sender_role = %from_role,
+                kind = kind.name(),
+                receiver = %env.to,
+                receiver_role = %self.role,
+                "refused a message the sender's role may not send (dropped)"
+            );
+            return Ok(());
+        }
+        self.deliver_local(env).await
+    }
+
     fn broadcast(&self, d: Delivery) {
         let txs: Vec<_> = lock(&self.actors).values().cloned().collect();
         for tx in txs {
@@ -144,11 +183,38 @@ impl Inner {
         }
     }
 
-    pub(crate) fn peer_up(&self, node: Name, role: Role, link: PeerLink) {
-        lock(&self.peers).insert(node.clone(), (link, role));
+    /// Registers `link` as the one to `node`. One identity, one link: while
+    /// a link to `node` is up, another is refused (logged as an error naming
+    /// both ends), so a second process under the same name (an impostor,
+    /// or the same `--index` started twice) can neither take the node's
+    /// traffic nor, by leaving, cut the node off; closing the first instead
+    /// would let the two evict each other in turn. A restarted node gets
+    /// in once its old link is down (QUIC's idle timeout).
+    pub(crate) fn peer_up(
+        &self,
+        node: Name,
+        role: Role,
+        link: PeerLink,
+    ) -> Result<(), AlreadyConnected> {
+        {
+            let mut peers = lock(&self.peers);
+            if let Some((live, _)) = peers.get(&node) {
+                let remote = live.remote();
+                error!(
+                    local = %self.node,
+                    peer = %node,
+                    live = %remote,
+                    refused = %link.remote(),
+                    "a second connection under a connected node's name was refused"
+                );
+                return Err(AlreadyConnected { remote });
+            }
+            peers.insert(node.clone(), (link, role));
+        }
         debug!(local = %self.node, peer = %node, %role, "peer up");
         self.peers_changed.notify_waiters();
         self.broadcast(Delivery::PeerUp { node, role });
+        Ok(())
     }
 
     /// Removes the link if it is still the one registered for `node`.

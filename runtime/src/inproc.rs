@@ -27,6 +27,9 @@ struct Pipe {
 
 /// One direction between two in-process nodes.
 pub(crate) struct InProcLink {
+    /// The sending node's role: in one process, the role it was added with
+    /// is its authenticated identity, checked against the sender rules.
+    src_role: Role,
     dst_name: Name,
     dst: Weak<Inner>,
     pipe: Mutex<Option<Arc<Pipe>>>,
@@ -48,7 +51,9 @@ impl InProcLink {
         match pipe {
             None => {
                 let env = decode_envelope(&body)?;
-                dst.deliver_local(env).await.map(|()| body.len())
+                dst.deliver_remote(self.src_role, env)
+                    .await
+                    .map(|()| body.len())
             }
             Some(pipe) => {
                 let lane = if kind.own_stream(body.len()) {
@@ -73,13 +78,14 @@ impl InProcLink {
     fn spawn_lane(&self, lane: &'static str) -> mpsc::Sender<(Instant, Envelope)> {
         let (tx, mut rx) = mpsc::channel::<(Instant, Envelope)>(PIPE_CAPACITY);
         let dst = self.dst.clone();
+        let src_role = self.src_role;
         let span = tracing::debug_span!("inproc_link", to = %self.dst_name, lane);
         tokio::spawn(
             async move {
                 while let Some((at, env)) = rx.recv().await {
                     tokio::time::sleep_until(at).await;
                     let Some(dst) = dst.upgrade() else { break };
-                    if let Err(e) = dst.deliver_local(env).await {
+                    if let Err(e) = dst.deliver_remote(src_role, env).await {
                         warn!(error = %e, "shaped message not delivered");
                     }
                 }
@@ -174,11 +180,27 @@ impl InProcNet {
     /// runtime.
     pub fn add_node(&self, name: Name, role: Role) -> Result<Bus, BusError> {
         let bus = Bus::new(name.clone(), role);
+        let mut stale = Vec::new();
         let others: Vec<(Name, Arc<Inner>, Role)> = {
             let mut st = lock(&self.state);
             st.nodes.retain(|_, (w, _)| w.strong_count() > 0);
             if st.nodes.contains_key(&name) {
                 return Err(BusError::NodeExists(name));
+            }
+            // Links of nodes that are gone: a node of the same name may
+            // come back, and gets links of its own.
+            let nodes = &st.nodes;
+            let gone: Vec<(Name, Name)> = st
+                .links
+                .keys()
+                .filter(|(f, t)| !nodes.contains_key(f) || !nodes.contains_key(t))
+                .cloned()
+                .collect();
+            for key in gone {
+                if let Some(link) = st.links.remove(&key) {
+                    let from = st.nodes.get(&key.0).and_then(|(w, _)| w.upgrade());
+                    stale.extend(from.map(|f| (f, key.1, link)));
+                }
             }
             st.nodes.insert(name.clone(), (bus.downgrade(), role));
             st.nodes
@@ -187,6 +209,13 @@ impl InProcNet {
                 .filter_map(|(n, (w, r))| w.upgrade().map(|i| (n.clone(), i, *r)))
                 .collect()
         };
+        for (from, to, link) in stale {
+            from.peer_down(
+                &to,
+                Inner::link_id(&PeerLink::InProc(link)),
+                "node gone".into(),
+            );
+        }
         for (_, inner, _) in others {
             self.link(&bus.inner, &inner);
             self.link(&inner, &bus.inner);
@@ -194,20 +223,27 @@ impl InProcNet {
         Ok(bus)
     }
 
-    /// Creates the direction `from → to` and announces it to `from`.
+    /// Creates the direction `from → to` and announces it to `from`,
+    /// unless it exists already.
     fn link(&self, from: &Arc<Inner>, to: &Arc<Inner>) {
         let link = Arc::new(InProcLink {
+            src_role: from.role,
             dst_name: to.node.clone(),
             dst: Arc::downgrade(to),
             pipe: Mutex::new(None),
         });
         {
             let mut st = lock(&self.state);
-            st.links
-                .insert((from.node.clone(), to.node.clone()), link.clone());
+            let key = (from.node.clone(), to.node.clone());
+            if st.links.contains_key(&key) {
+                return;
+            }
+            st.links.insert(key, link.clone());
             link.set_path(st.path(&from.node, &to.node));
         }
-        from.peer_up(to.node.clone(), to.role, PeerLink::InProc(link));
+        // The net makes one link per direction (above), so the bus never
+        // holds another one to refuse it for.
+        let _ = from.peer_up(to.node.clone(), to.role, PeerLink::InProc(link));
     }
 
     /// Shapes both directions between `a` and `b` (now and for links made

@@ -10,7 +10,7 @@
 //! `LengthDelimitedCodec`). A malformed control frame closes the connection;
 //! a malformed bulk stream is stopped alone. Other peers are not affected.
 
-use crate::bus::{Bus, Inner, PeerLink, SendError};
+use crate::bus::{AlreadyConnected, Bus, Inner, PeerLink, SendError};
 use crate::certs::{CertError, NodeIdentity};
 use bytes::{Bytes, BytesMut};
 use dray_protocol::{
@@ -20,10 +20,11 @@ use dray_protocol::{
 use futures::{SinkExt, StreamExt};
 use quinn::crypto::rustls::{QuicClientConfig, QuicServerConfig};
 use quinn::{Connection, Endpoint, VarInt};
+use std::collections::HashMap;
 use std::net::SocketAddr;
-use std::sync::{Arc, Weak};
+use std::sync::{Arc, Mutex, MutexGuard, Weak};
 use std::time::Duration;
-use tokio::sync::{mpsc, watch};
+use tokio::sync::{mpsc, watch, Notify};
 use tokio_util::codec::{FramedRead, FramedWrite, LengthDelimitedCodec};
 use tracing::{debug, error, info, info_span, trace, warn, Instrument};
 
@@ -91,6 +92,71 @@ pub enum QuicError {
     /// The handshake took too long.
     #[error("handshake timed out")]
     Timeout,
+    /// A node's announced role is not the one its name gives it.
+    #[error("node {node} says it is a {announced}, but its name makes it a {role}")]
+    WrongRole {
+        /// The node (as its certificate names it).
+        node: Name,
+        /// The role it announced.
+        announced: Role,
+        /// The role its name gives it ([`Role::of_node`]).
+        role: Role,
+    },
+    /// Another connection under the same node name is up.
+    #[error("node {node} is already connected (from {live}); a second connection under its name is refused")]
+    AlreadyConnected {
+        /// The node.
+        node: Name,
+        /// Where its live connection comes from.
+        live: String,
+    },
+    /// The TLS handshake failed over a certificate: retrying cannot help
+    /// until the certificates are fixed.
+    #[error("{0}")]
+    Untrusted(String),
+}
+
+/// Explains a connection error that is a TLS refusal over certificates
+/// (QUIC carries TLS alerts as crypto errors `0x100 + alert`), naming who
+/// refused whom; `None` for any other error.
+fn untrusted(e: &QuicError, local: &Name, peer: &Name) -> Option<String> {
+    let (code, reason, by_peer) = match e {
+        QuicError::Connection(quinn::ConnectionError::TransportError(t)) => {
+            (u64::from(t.code), t.reason.clone(), false)
+        }
+        QuicError::Connection(quinn::ConnectionError::ConnectionClosed(c)) => (
+            u64::from(c.error_code),
+            String::from_utf8_lossy(&c.reason).into_owned(),
+            true,
+        ),
+        _ => return None,
+    };
+    let alert = code.checked_sub(0x100).filter(|a| *a < 0x100)?;
+    // bad_certificate .. certificate_unknown, unknown_ca, certificate_required
+    let about_certs = matches!(alert, 42..=46 | 48 | 116) || reason.contains("certificate");
+    if !about_certs {
+        return None;
+    }
+    let other_ca = alert == 48 || reason.contains("UnknownIssuer");
+    let (refuser, refused) = if by_peer {
+        (peer.to_string(), format!("the certificate of {local}"))
+    } else {
+        (local.to_string(), format!("the certificate of {peer}"))
+    };
+    let detail = if reason.is_empty() {
+        format!("TLS alert {alert}")
+    } else {
+        reason
+    };
+    Some(if other_ca {
+        format!(
+            "{refuser} refused {refused}: unknown issuer, it is signed by another CA than the \
+             one {refuser} trusts ({detail}); every node needs its certificate and ca.pem \
+             from the same CA (`dray certs bundle` / `dray certs add`)"
+        )
+    } else {
+        format!("{refuser} refused {refused} in the TLS handshake ({detail})")
+    })
 }
 
 /// Socket buffer asked for, so a burst of datagrams is not lost in the
@@ -135,6 +201,11 @@ pub(crate) struct QuicPeer {
 }
 
 impl QuicPeer {
+    /// The peer's address.
+    pub(crate) fn remote(&self) -> SocketAddr {
+        self.conn.remote_address()
+    }
+
     /// Sends `env`; returns the bytes of its encoding.
     pub(crate) async fn send(&self, env: Envelope) -> Result<usize, SendError> {
         let kind = env.msg.kind();
@@ -179,6 +250,24 @@ pub struct QuicTransport {
     role: Role,
     endpoint: Endpoint,
     shutdown: watch::Sender<bool>,
+    /// Why the last dial to each peer failed (cleared once it connects),
+    /// and whether retrying cannot help.
+    dial_errors: Mutex<HashMap<Name, (String, bool)>>,
+    dial_failed: Notify,
+}
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    // Each update is one insert or remove, so a poisoned map is usable.
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+/// A connection registered on the bus as the link to its peer.
+struct Attached {
+    conn: Connection,
+    peer: Name,
+    role: Role,
+    link_id: usize,
+    rx: mpsc::Receiver<Bytes>,
 }
 
 impl QuicTransport {
@@ -192,6 +281,14 @@ impl QuicTransport {
             return Err(QuicError::WrongIdentity {
                 cert: identity.node().clone(),
                 bus: bus.node().clone(),
+            });
+        }
+        let role = Role::of_node(bus.node());
+        if bus.role() != role {
+            return Err(QuicError::WrongRole {
+                node: bus.node().clone(),
+                announced: bus.role(),
+                role,
             });
         }
         let transport = Arc::new(transport_config());
@@ -218,6 +315,8 @@ impl QuicTransport {
             role: bus.role(),
             endpoint,
             shutdown,
+            dial_errors: Mutex::new(HashMap::new()),
+            dial_failed: Notify::new(),
         });
         let acceptor = this.clone();
         let span = info_span!("quic_accept", node = %this.node);
@@ -238,6 +337,37 @@ impl QuicTransport {
         let this = self.clone();
         let span = info_span!("quic_dial", node = %self.node, peer = %peer, %addr);
         tokio::spawn(this.dial_loop(peer, addr).instrument(span));
+    }
+
+    /// Why the last dial to `peer` failed, while it is not connected.
+    pub fn dial_error(&self, peer: &Name) -> Option<String> {
+        lock(&self.dial_errors).get(peer).map(|(e, _)| e.clone())
+    }
+
+    /// Waits until `peer` (see [`QuicTransport::connect`]) is connected, or
+    /// fails with [`QuicError::Untrusted`] once a dial to it failed over
+    /// certificates (one side's certificate is from another CA, say),
+    /// which no retry mends; the dialing goes on meanwhile.
+    pub async fn wait_connected(&self, peer: &Name) -> Result<(), QuicError> {
+        let Some(inner) = self.bus.upgrade() else {
+            return Err(QuicError::Stream("the bus is gone".into()));
+        };
+        let bus = Bus { inner };
+        loop {
+            let failed = self.dial_failed.notified();
+            tokio::pin!(failed);
+            failed.as_mut().enable();
+            if bus.is_connected(peer) {
+                return Ok(());
+            }
+            if let Some((e, true)) = lock(&self.dial_errors).get(peer) {
+                return Err(QuicError::Untrusted(e.clone()));
+            }
+            tokio::select! {
+                _ = bus.wait_for_peer(peer) => return Ok(()),
+                _ = &mut failed => {}
+            }
+        }
     }
 
     /// Closes every connection and stops accepting and redialing.
@@ -277,21 +407,49 @@ impl QuicTransport {
             .await
             .map_err(|_| QuicError::Timeout)
             .and_then(|r| r);
-        let (peer, role) = match hs {
+        let (hello, mut wr) = match hs {
             Ok(v) => v,
             Err(e) => {
                 conn.close(VarInt::from_u32(CODE_REFUSED), e.to_string().as_bytes());
                 return Err(e);
             }
         };
-        self.run_connection(conn, peer, role).await;
-        Ok(())
+        let attached = match self.attach(&conn, hello.node.clone(), hello.role) {
+            Ok(a) => a,
+            Err(live) => {
+                let e = QuicError::AlreadyConnected {
+                    node: hello.node,
+                    live: live.remote,
+                };
+                self.refuse(wr, e.to_string()).await;
+                conn.close(VarInt::from_u32(CODE_REFUSED), e.to_string().as_bytes());
+                return Err(e);
+            }
+        };
+        let welcome = Handshake::Welcome(Hello {
+            version: PROTOCOL_VERSION,
+            role: self.role,
+            node: self.node.clone(),
+        });
+        let sent = self.send_handshake(&mut wr, &welcome).await;
+        if sent.is_ok() {
+            let _ = wr.into_inner().finish();
+        } else {
+            conn.close(VarInt::from_u32(CODE_PROTOCOL), b"welcome not sent");
+        }
+        // Serving a closed connection only unregisters it.
+        self.serve(attached).await;
+        sent
     }
 
-    async fn answer_hello(&self, conn: &Connection) -> Result<(Name, Role), QuicError> {
+    /// Reads and checks the peer's hello; the caller answers it.
+    async fn answer_hello(
+        &self,
+        conn: &Connection,
+    ) -> Result<(Hello, FramedWrite<quinn::SendStream, LengthDelimitedCodec>), QuicError> {
         let (send, recv) = conn.accept_bi().await?;
         let mut rd = FramedRead::new(recv, codec(HANDSHAKE_FRAME_MAX));
-        let mut wr = FramedWrite::new(send, codec(HANDSHAKE_FRAME_MAX));
+        let wr = FramedWrite::new(send, codec(HANDSHAKE_FRAME_MAX));
         let frame = rd
             .next()
             .await
@@ -305,18 +463,11 @@ impl QuicTransport {
                 return Err(QuicError::Handshake(e));
             }
         };
-        if let Err(e) = check_cert_name(conn, &hello.node) {
+        if let Err(e) = check_cert_name(conn, &hello.node).and_then(|()| check_role(&hello)) {
             self.refuse(wr, e.to_string()).await;
             return Err(e);
         }
-        let welcome = Handshake::Welcome(Hello {
-            version: PROTOCOL_VERSION,
-            role: self.role,
-            node: self.node.clone(),
-        });
-        self.send_handshake(&mut wr, &welcome).await?;
-        let _ = wr.into_inner().finish();
-        Ok((hello.node, hello.role))
+        Ok((hello, wr))
     }
 
     /// Tells the peer why it is refused, and waits (briefly) until it has
@@ -351,6 +502,19 @@ impl QuicTransport {
 
     async fn dial(&self, peer: &Name, addr: SocketAddr) -> Result<(Connection, Role), QuicError> {
         let conn = self.endpoint.connect(addr, peer.as_str())?.await?;
+        match self.greet(peer, &conn).await {
+            Ok(role) => Ok((conn, role)),
+            // The acceptor checks our certificate only after our side of
+            // the TLS handshake is done: its refusal is the close reason.
+            Err(e @ (QuicError::Stream(_) | QuicError::Connection(_))) => {
+                Err(conn.close_reason().map_or(e, QuicError::Connection))
+            }
+            Err(e) => Err(e),
+        }
+    }
+
+    /// Sends our hello on a dialed connection and reads the answer.
+    async fn greet(&self, peer: &Name, conn: &Connection) -> Result<Role, QuicError> {
         let (send, recv) = conn.open_bi().await?;
         let mut wr = FramedWrite::new(send, codec(HANDSHAKE_FRAME_MAX));
         let mut rd = FramedRead::new(recv, codec(HANDSHAKE_FRAME_MAX));
@@ -376,7 +540,10 @@ impl QuicTransport {
         };
         let _ = wr.into_inner().finish();
         match Handshake::decode(&frame)? {
-            Handshake::Welcome(w) if &w.node == peer => Ok((conn, w.role)),
+            Handshake::Welcome(w) if &w.node == peer => {
+                check_role(&w)?;
+                Ok(w.role)
+            }
             Handshake::Welcome(w) => Err(QuicError::WrongPeer {
                 expected: peer.to_string(),
                 got: w.node.to_string(),
@@ -396,21 +563,45 @@ impl QuicTransport {
         let mut backoff = BACKOFF_MIN;
         let mut stop = self.shutdown.subscribe();
         while !self.stopping() {
-            match self.dial(&peer, addr).await {
-                Ok((conn, role)) => {
+            let dialed = self.dial(&peer, addr).await.and_then(|(conn, role)| {
+                self.attach(&conn, peer.clone(), role).map_err(|live| {
+                    let e = QuicError::AlreadyConnected {
+                        node: peer.clone(),
+                        live: live.remote,
+                    };
+                    conn.close(VarInt::from_u32(CODE_REFUSED), e.to_string().as_bytes());
+                    e
+                })
+            });
+            match dialed {
+                Ok(attached) => {
                     backoff = BACKOFF_MIN;
-                    self.clone().run_connection(conn, peer.clone(), role).await;
+                    lock(&self.dial_errors).remove(&peer);
+                    self.serve(attached).await;
                 }
                 Err(QuicError::Handshake(e @ ProtocolError::VersionMismatch { .. })) => {
                     error!(error = %e, "giving up on this peer");
+                    self.dial_failed(&peer, e.to_string(), true);
                     return;
                 }
-                // A peer that is starting or stopping refuses for a moment;
-                // only a failure that lasts is worth a warning.
-                Err(e) if backoff >= Duration::from_secs(1) => {
-                    warn!(error = %e, retry_in = ?backoff, "dial failed")
-                }
-                Err(e) => debug!(error = %e, retry_in = ?backoff, "dial failed"),
+                Err(e) => match untrusted(&e, &self.node, &peer) {
+                    // Certificates do not mend themselves: say why loudly
+                    // (the node gives up if it is still starting).
+                    Some(why) => {
+                        error!(error = %why, retry_in = ?backoff, "dial failed");
+                        self.dial_failed(&peer, why, true);
+                    }
+                    None => {
+                        // A peer that is starting or stopping refuses for a
+                        // moment; only a failure that lasts is worth a warning.
+                        if backoff >= Duration::from_secs(1) {
+                            warn!(error = %e, retry_in = ?backoff, "dial failed");
+                        } else {
+                            debug!(error = %e, retry_in = ?backoff, "dial failed");
+                        }
+                        self.dial_failed(&peer, e.to_string(), false);
+                    }
+                },
             }
             if self.stopping() {
                 break;
@@ -423,31 +614,60 @@ impl QuicTransport {
         }
     }
 
-    /// Serves one established connection until it closes.
-    async fn run_connection(self: Arc<Self>, conn: Connection, peer: Name, role: Role) {
+    fn dial_failed(&self, peer: &Name, why: String, lasting: bool) {
+        lock(&self.dial_errors).insert(peer.clone(), (why, lasting));
+        self.dial_failed.notify_waiters();
+    }
+
+    /// Registers an established connection on the bus as the link to
+    /// `peer`, unless another link to it is up (see `Inner::peer_up`).
+    fn attach(
+        &self,
+        conn: &Connection,
+        peer: Name,
+        role: Role,
+    ) -> Result<Attached, AlreadyConnected> {
         let Some(bus) = self.bus.upgrade() else {
             conn.close(VarInt::from_u32(CODE_SHUTDOWN), b"bus gone");
-            return;
+            return Err(AlreadyConnected {
+                remote: "nowhere (this node is stopping)".into(),
+            });
         };
-        let span = info_span!("quic_conn", node = %self.node, peer = %peer, remote = %conn.remote_address());
         let (tx, rx) = mpsc::channel(CONTROL_QUEUE);
-        let link = Arc::new(QuicPeer {
+        let link = PeerLink::Quic(Arc::new(QuicPeer {
             node: peer.clone(),
             conn: conn.clone(),
             control: tx,
-        });
-        let link = PeerLink::Quic(link);
+        }));
         let link_id = Inner::link_id(&link);
+        bus.peer_up(peer.clone(), role, link)?;
+        Ok(Attached {
+            conn: conn.clone(),
+            peer,
+            role,
+            link_id,
+            rx,
+        })
+    }
+
+    /// Serves an attached connection until it closes, then unregisters it.
+    async fn serve(&self, attached: Attached) {
+        let Attached {
+            conn,
+            peer,
+            role,
+            link_id,
+            rx,
+        } = attached;
+        let span = info_span!("quic_conn", node = %self.node, peer = %peer, remote = %conn.remote_address());
         info!(parent: &span, %role, "peer connected");
-        bus.peer_up(peer.clone(), role, link);
-        drop(bus);
         let writer = tokio::spawn(control_writer(conn.clone(), rx).instrument(span.clone()));
         let reader = tokio::spawn(
             accept_streams(
                 conn.clone(),
                 self.bus.clone(),
                 self.node.clone(),
-                peer.clone(),
+                (peer.clone(), role),
             )
             .instrument(span.clone()),
         );
@@ -460,6 +680,20 @@ impl QuicTransport {
         if let Some(bus) = self.bus.upgrade() {
             bus.peer_down(&peer, link_id, reason.to_string());
         }
+    }
+}
+
+/// Checks that a hello's role is the one its node's name gives it.
+fn check_role(h: &Hello) -> Result<(), QuicError> {
+    let role = Role::of_node(&h.node);
+    if h.role == role {
+        Ok(())
+    } else {
+        Err(QuicError::WrongRole {
+            node: h.node.clone(),
+            announced: h.role,
+            role,
+        })
     }
 }
 
@@ -530,7 +764,7 @@ fn push_frame(chunks: &mut Vec<Bytes>, body: Bytes) -> Result<(), String> {
     Ok(())
 }
 
-async fn accept_streams(conn: Connection, bus: Weak<Inner>, local: Name, peer: Name) {
+async fn accept_streams(conn: Connection, bus: Weak<Inner>, local: Name, peer: (Name, Role)) {
     loop {
         let recv = match conn.accept_uni().await {
             Ok(r) => r,
@@ -561,7 +795,7 @@ async fn read_stream(
     mut recv: quinn::RecvStream,
     bus: Weak<Inner>,
     local: Name,
-    peer: Name,
+    peer: (Name, Role),
 ) {
     let mut class = [0u8; 1];
     if recv.read_exact(&mut class).await.is_err() {
@@ -645,7 +879,7 @@ async fn read_bulk(recv: &mut quinn::RecvStream) -> Result<BytesMut, String> {
 async fn deliver(
     bus: &Weak<Inner>,
     local: &Name,
-    peer: &Name,
+    (peer, role): &(Name, Role),
     body: BytesMut,
     bulk: bool,
 ) -> Result<(), String> {
@@ -670,7 +904,7 @@ async fn deliver(
     bus.count_received(peer, body.len());
     let span =
         tracing::trace_span!("recv", kind = kind.name(), from = %env.from, to = %env.to.actor);
-    if let Err(e) = bus.deliver_local(env).instrument(span).await {
+    if let Err(e) = bus.deliver_remote(*role, env).instrument(span).await {
         // Not the peer's fault: the actor is gone. Drop the message.
         warn!(error = %e, "message dropped");
     }

@@ -10,10 +10,11 @@ use dray_runtime::{Bus, Delivery, InProcNet, LinkShape, SendError};
 use std::time::Duration;
 use tokio::time::Instant;
 
+/// Two tools, which may send each other every kind.
 fn pair() -> (InProcNet, Bus, Bus) {
     let net = InProcNet::new();
-    let a = net.add_node(name("node-a"), Role::Client).unwrap();
-    let b = net.add_node(name("node-b"), Role::Store).unwrap();
+    let a = net.add_node(name("node-a"), Role::Tool).unwrap();
+    let b = net.add_node(name("node-b"), Role::Tool).unwrap();
     (net, a, b)
 }
 
@@ -255,4 +256,45 @@ async fn a_big_voxel_does_not_hold_back_a_control_message() {
         Message::Ping(Ping { seq: 1 })
     );
     assert_eq!(next_message(&mut rx).await.1, voxel);
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_message_the_senders_role_may_not_send_is_dropped_and_the_link_goes_on() {
+    use dray_protocol::{FetchVoxel, Shutdown};
+    let net = InProcNet::new();
+    let client = net.add_node(name("client-0"), Role::Client).unwrap();
+    let store = net.add_node(name("store-0"), Role::Store).unwrap();
+    let sched = net.add_node(name("scheduler"), Role::Scheduler).unwrap();
+    let display = net.add_node(name("display"), Role::Display).unwrap();
+    let from_client = client.mailbox(name("client"), 4).unwrap();
+    let from_display = display.mailbox(name("control"), 4).unwrap();
+    let mut at_store = store.mailbox(name("store"), 4).unwrap();
+    let mut at_sched = sched.mailbox(name("scheduler"), 4).unwrap();
+    let stop = || {
+        Message::Shutdown(Shutdown {
+            reason: "a client says so".into(),
+        })
+    };
+    // A client's Shutdown reaches neither the store nor the scheduler; what
+    // it may send still does, in order behind the refused message.
+    from_client.send(at_store.address(), stop()).await.unwrap();
+    from_client.send(at_sched.address(), stop()).await.unwrap();
+    let fetch = Message::FetchVoxel(FetchVoxel { id: 7 });
+    from_client
+        .send(at_store.address(), fetch.clone())
+        .await
+        .unwrap();
+    assert_eq!(next_message(&mut at_store).await.1, fetch);
+    from_client
+        .send(at_sched.address(), Message::Ping(Ping { seq: 1 }))
+        .await
+        .unwrap();
+    assert_eq!(
+        next_message(&mut at_sched).await.1,
+        Message::Ping(Ping { seq: 1 })
+    );
+    assert!(client.is_connected(store.node()) && store.is_connected(client.node()));
+    // The display's node may end the run.
+    from_display.send(at_store.address(), stop()).await.unwrap();
+    assert_eq!(next_message(&mut at_store).await.1, stop());
 }

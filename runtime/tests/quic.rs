@@ -12,7 +12,9 @@ use dray_protocol::{
     encode_envelope, Address, Blob, Envelope, FetchVoxel, Handshake, Hello, Message, Ping, Role,
     VoxelLoaded, PROTOCOL_VERSION,
 };
-use dray_runtime::certs::{init_cluster, ClusterCa, NodeIdentity};
+use dray_runtime::certs::{
+    add_nodes, bundle, init_cluster, init_cluster_in, CertError, ClusterCa, NodeIdentity,
+};
 use dray_runtime::quic::{QuicTransport, STREAM_BULK, STREAM_CONTROL};
 use dray_runtime::relay::{shared_link, RelayShaping, UdpRelay};
 use dray_runtime::{Bus, Delivery, LinkShape};
@@ -41,8 +43,8 @@ async fn node(id: &NodeIdentity, role: Role) -> (Bus, Arc<QuicTransport>) {
 
 /// Two nodes, `node-a` dialing `node-b`, connected.
 async fn connected_pair(ca: &ClusterCa) -> (Bus, Arc<QuicTransport>, Bus, Arc<QuicTransport>) {
-    let (a, ta) = node(&ca.issue(&name("node-a")).unwrap(), Role::Client).await;
-    let (b, tb) = node(&ca.issue(&name("node-b")).unwrap(), Role::Store).await;
+    let (a, ta) = node(&ca.issue(&name("node-a")).unwrap(), Role::Tool).await;
+    let (b, tb) = node(&ca.issue(&name("node-b")).unwrap(), Role::Tool).await;
     ta.connect(name("node-b"), tb.local_addr().unwrap());
     guard(a.wait_for_peer(&name("node-b"))).await;
     guard(b.wait_for_peer(&name("node-a"))).await;
@@ -101,7 +103,7 @@ async fn raw_hello(conn: &Connection, hs: &Handshake) -> Result<Handshake, Strin
 fn hello(node: &str, version: u32) -> Handshake {
     Handshake::Hello(Hello {
         version,
-        role: Role::Client,
+        role: Role::Tool,
         node: name(node),
     })
 }
@@ -120,13 +122,13 @@ async fn every_kind_crosses_quic_with_certificates_from_disk() {
     let err = NodeIdentity::load(dir.path(), &name("node-z")).unwrap_err();
     assert!(err.to_string().contains("node-z.pem"), "{err}");
 
-    let (a, ta) = node(&ida, Role::Client).await;
-    let (b, tb) = node(&idb, Role::Store).await;
+    let (a, ta) = node(&ida, Role::Tool).await;
+    let (b, tb) = node(&idb, Role::Tool).await;
     ta.connect(name("node-b"), tb.local_addr().unwrap());
     guard(a.wait_for_peer(&name("node-b"))).await;
     guard(b.wait_for_peer(&name("node-a"))).await;
-    assert_eq!(b.peers(), vec![(name("node-a"), Role::Client)]);
-    assert_eq!(a.peers(), vec![(name("node-b"), Role::Store)]);
+    assert_eq!(b.peers(), vec![(name("node-a"), Role::Tool)]);
+    assert_eq!(a.peers(), vec![(name("node-b"), Role::Tool)]);
     guard(exchange_every_kind(&a, &b)).await;
     ta.shutdown().await;
     tb.shutdown().await;
@@ -135,7 +137,7 @@ async fn every_kind_crosses_quic_with_certificates_from_disk() {
 #[tokio::test]
 async fn strangers_are_refused_and_the_node_keeps_serving() {
     let ca = ClusterCa::generate().unwrap();
-    let (b, tb) = node(&ca.issue(&name("node-b")).unwrap(), Role::Store).await;
+    let (b, tb) = node(&ca.issue(&name("node-b")).unwrap(), Role::Tool).await;
     let mut watcher = b.mailbox(name("watcher"), 16).unwrap();
     let addr = tb.local_addr().unwrap();
 
@@ -162,13 +164,13 @@ async fn strangers_are_refused_and_the_node_keeps_serving() {
         .unwrap()
         .issue(&name("node-b"))
         .unwrap();
-    let (_rogue_bus, rogue_t) = node(&rogue, Role::Store).await;
+    let (_rogue_bus, rogue_t) = node(&rogue, Role::Tool).await;
     let legit = ca.issue(&name("node-a")).unwrap();
     let outcome = guard(raw_connect(&legit, rogue_t.local_addr().unwrap(), "node-b")).await;
     assert!(outcome.is_err());
 
     // Nothing from the strangers reached the node; a member still gets in.
-    let (a, ta) = node(&legit, Role::Client).await;
+    let (a, ta) = node(&legit, Role::Tool).await;
     ta.connect(name("node-b"), addr);
     guard(a.wait_for_peer(&name("node-b"))).await;
     guard(b.wait_for_peer(&name("node-a"))).await;
@@ -176,7 +178,7 @@ async fn strangers_are_refused_and_the_node_keeps_serving() {
         guard(watcher.recv()).await,
         Some(Delivery::PeerUp {
             node: name("node-a"),
-            role: Role::Client
+            role: Role::Tool
         }),
         "the first event is the member's arrival"
     );
@@ -187,7 +189,7 @@ async fn strangers_are_refused_and_the_node_keeps_serving() {
 #[tokio::test]
 async fn version_mismatch_and_impersonation_are_refused_clearly() {
     let ca = ClusterCa::generate().unwrap();
-    let (b, tb) = node(&ca.issue(&name("node-b")).unwrap(), Role::Store).await;
+    let (b, tb) = node(&ca.issue(&name("node-b")).unwrap(), Role::Tool).await;
     let addr = tb.local_addr().unwrap();
     let idc = ca.issue(&name("node-c")).unwrap();
 
@@ -337,7 +339,7 @@ async fn connection_loss_is_an_event_and_the_dialer_reconnects() {
         .is_err());
 
     // node-b comes back on the same address; node-a redials by itself.
-    let b2 = Bus::new(name("node-b"), Role::Store);
+    let b2 = Bus::new(name("node-b"), Role::Tool);
     // The old endpoint lets go of its port once its last connection task
     // has ended; retry the bind until it has.
     let tb2 = guard(async {
@@ -354,7 +356,7 @@ async fn connection_loss_is_an_event_and_the_dialer_reconnects() {
         ev,
         Some(Delivery::PeerUp {
             node: name("node-b"),
-            role: Role::Store
+            role: Role::Tool
         })
     );
     ping_pong(&a, &b2, 3).await;
@@ -365,8 +367,8 @@ async fn connection_loss_is_an_event_and_the_dialer_reconnects() {
 #[tokio::test]
 async fn relay_delay_shows_in_the_round_trip() {
     let ca = ClusterCa::generate().unwrap();
-    let (a, ta) = node(&ca.issue(&name("node-a")).unwrap(), Role::Client).await;
-    let (b, tb) = node(&ca.issue(&name("node-b")).unwrap(), Role::Store).await;
+    let (a, ta) = node(&ca.issue(&name("node-a")).unwrap(), Role::Tool).await;
+    let (b, tb) = node(&ca.issue(&name("node-b")).unwrap(), Role::Tool).await;
     let shape = LinkShape {
         latency: Duration::from_millis(20),
         ..LinkShape::none()
@@ -401,8 +403,8 @@ async fn relay_delay_shows_in_the_round_trip() {
 #[tokio::test]
 async fn every_kind_crosses_a_lossy_capped_relay() {
     let ca = ClusterCa::generate().unwrap();
-    let (a, ta) = node(&ca.issue(&name("node-a")).unwrap(), Role::Client).await;
-    let (b, tb) = node(&ca.issue(&name("node-b")).unwrap(), Role::Store).await;
+    let (a, ta) = node(&ca.issue(&name("node-a")).unwrap(), Role::Tool).await;
+    let (b, tb) = node(&ca.issue(&name("node-b")).unwrap(), Role::Tool).await;
     // QUIC's retransmission and congestion control have to cope.
     let shape = LinkShape {
         latency: Duration::from_millis(2),
@@ -425,8 +427,8 @@ async fn every_kind_crosses_a_lossy_capped_relay() {
 async fn a_big_voxel_does_not_hold_back_a_control_message() {
     use dray_protocol::{Blob, VoxelLoaded};
     let ca = ClusterCa::generate().unwrap();
-    let (a, ta) = node(&ca.issue(&name("node-a")).unwrap(), Role::Store).await;
-    let (b, tb) = node(&ca.issue(&name("node-b")).unwrap(), Role::Client).await;
+    let (a, ta) = node(&ca.issue(&name("node-a")).unwrap(), Role::Tool).await;
+    let (b, tb) = node(&ca.issue(&name("node-b")).unwrap(), Role::Tool).await;
     // 4 MB at 50 Mbit/s takes most of a second on the wire.
     let shape = LinkShape {
         bandwidth_bps: Some(50_000_000),
@@ -465,8 +467,8 @@ async fn a_big_voxel_does_not_hold_back_a_control_message() {
 #[tokio::test]
 async fn a_silent_partition_is_detected_and_healed() {
     let ca = ClusterCa::generate().unwrap();
-    let (a, ta) = node(&ca.issue(&name("node-a")).unwrap(), Role::Client).await;
-    let (b, tb) = node(&ca.issue(&name("node-b")).unwrap(), Role::Scheduler).await;
+    let (a, ta) = node(&ca.issue(&name("node-a")).unwrap(), Role::Tool).await;
+    let (b, tb) = node(&ca.issue(&name("node-b")).unwrap(), Role::Tool).await;
     let relay = UdpRelay::start(
         loopback(),
         tb.local_addr().unwrap(),
@@ -499,7 +501,7 @@ async fn a_silent_partition_is_detected_and_healed() {
         guard(ma.recv()).await,
         Some(Delivery::PeerUp {
             node: name("node-b"),
-            role: Role::Scheduler
+            role: Role::Tool
         })
     );
     guard(b.wait_for_peer(&name("node-a"))).await;
@@ -582,4 +584,201 @@ async fn clients_share_a_store_uplink_through_its_relay() {
         tc.shutdown().await;
     }
     ts.shutdown().await;
+}
+
+/// A store `store-0` and a client `client-0` of one CA, connected.
+async fn store_and_client(ca: &ClusterCa) -> (Bus, Arc<QuicTransport>, Bus, Arc<QuicTransport>) {
+    let (s, ts) = node(&ca.issue(&name("store-0")).unwrap(), Role::Store).await;
+    let (c, tc) = node(&ca.issue(&name("client-0")).unwrap(), Role::Client).await;
+    tc.connect(name("store-0"), ts.local_addr().unwrap());
+    guard(tc.wait_connected(&name("store-0"))).await.unwrap();
+    guard(s.wait_for_peer(&name("client-0"))).await;
+    (s, ts, c, tc)
+}
+
+#[tokio::test]
+async fn a_client_may_not_stop_a_store_and_may_not_claim_another_role() {
+    use dray_protocol::Shutdown;
+    let ca = ClusterCa::generate().unwrap();
+    let (s, ts, c, _tc) = store_and_client(&ca).await;
+    let mut store = s.mailbox(name("store"), 8).unwrap();
+    let client = c.mailbox(name("client"), 8).unwrap();
+    client
+        .send(
+            store.address(),
+            Message::Shutdown(Shutdown {
+                reason: "a client says so".into(),
+            }),
+        )
+        .await
+        .unwrap();
+    let fetch = Message::FetchVoxel(FetchVoxel { id: 3 });
+    client.send(store.address(), fetch.clone()).await.unwrap();
+    // Same control stream, so the fetch comes after the refused shutdown.
+    assert_eq!(guard(next_message(&mut store)).await.1, fetch);
+    assert!(s.is_connected(&name("client-0")));
+
+    // A client's certificate cannot make it a display (which may stop nodes).
+    let idc = ca.issue(&name("client-1")).unwrap();
+    let (_ep, conn) = guard(raw_connect(&idc, ts.local_addr().unwrap(), "store-0"))
+        .await
+        .unwrap();
+    let claim = Handshake::Hello(Hello {
+        version: PROTOCOL_VERSION,
+        role: Role::Display,
+        node: name("client-1"),
+    });
+    match guard(raw_hello(&conn, &claim)).await {
+        Ok(Handshake::Refused { reason, .. }) => {
+            assert!(reason.contains("makes it a client"), "{reason}")
+        }
+        other => panic!("expected a refusal, got {other:?}"),
+    }
+    assert_eq!(s.peers(), vec![(name("client-0"), Role::Client)]);
+    // And a transport refuses to start under a role its name does not have.
+    let bus = Bus::new(name("client-2"), Role::Display);
+    let err = QuicTransport::start(&bus, &ca.issue(&name("client-2")).unwrap(), loopback())
+        .await
+        .err()
+        .expect("a client may not run as a display");
+    assert!(err.to_string().contains("makes it a client"), "{err}");
+}
+
+#[tokio::test]
+async fn a_second_connection_under_a_connected_name_is_refused_and_the_first_goes_on() {
+    let ca = ClusterCa::generate().unwrap();
+    let (s, ts, c, tc) = store_and_client(&ca).await;
+    let addr = ts.local_addr().unwrap();
+    // Another process with client-0's identity (the same --index twice).
+    let twin = ca.issue(&name("client-0")).unwrap();
+    let (ep, conn) = guard(raw_connect(&twin, addr, "store-0")).await.unwrap();
+    let claim = Handshake::Hello(Hello {
+        version: PROTOCOL_VERSION,
+        role: Role::Client,
+        node: name("client-0"),
+    });
+    match guard(raw_hello(&conn, &claim)).await {
+        Ok(Handshake::Refused { reason, .. }) => {
+            assert!(reason.contains("already connected"), "{reason}")
+        }
+        other => panic!("expected a refusal, got {other:?}"),
+    }
+    // The same through a transport: its dial is refused, saying why.
+    let (_twin_bus, twin_t) = node(&twin, Role::Client).await;
+    twin_t.connect(name("store-0"), addr);
+    let why = guard(async {
+        loop {
+            if let Some(e) = twin_t.dial_error(&name("store-0")) {
+                break e;
+            }
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+    })
+    .await;
+    assert!(why.contains("already connected"), "{why}");
+    // The twins leave; the first connection carries on.
+    twin_t.shutdown().await;
+    drop((conn, ep));
+    assert!(s.is_connected(&name("client-0")));
+    ping_pong(&c, &s, 7).await;
+    ping_pong(&s, &c, 8).await;
+    // Once the first is gone, the name is free again (a restarted node).
+    tc.shutdown().await;
+    guard(s.wait_for_peer_loss(&name("client-0"))).await;
+    let (c2, tc2) = node(&ca.issue(&name("client-0")).unwrap(), Role::Client).await;
+    tc2.connect(name("store-0"), addr);
+    guard(tc2.wait_connected(&name("store-0"))).await.unwrap();
+    ping_pong(&c2, &s, 9).await;
+}
+
+#[tokio::test]
+async fn a_certificate_of_another_ca_is_refused_as_from_an_unknown_issuer() {
+    let ca = ClusterCa::generate().unwrap();
+    let other = ClusterCa::generate().unwrap();
+    let (_s, ts) = node(&ca.issue(&name("store-0")).unwrap(), Role::Store).await;
+    let addr = ts.local_addr().unwrap();
+    // A node whose whole identity comes from another CA: it refuses the
+    // store. One with another CA's certificate but the cluster's ca.pem:
+    // the store refuses it. Either way the dialer says why at once.
+    let foreign = other.issue(&name("client-0")).unwrap();
+    let mixed = other
+        .issue(&name("client-1"))
+        .unwrap()
+        .trusting(ca.cert_der());
+    for (id, refuser) in [(foreign, "client-0 refused"), (mixed, "store-0 refused")] {
+        let peer = id.node().clone();
+        let (_b, t) = node(&id, Role::Client).await;
+        t.connect(name("store-0"), addr);
+        let err = guard(t.wait_connected(&name("store-0")))
+            .await
+            .expect_err("a foreign certificate got in");
+        let text = err.to_string();
+        assert!(text.contains("unknown issuer"), "{peer}: {text}");
+        assert!(text.contains("another CA"), "{peer}: {text}");
+        assert!(text.contains(refuser), "{peer}: {text}");
+        t.shutdown().await;
+    }
+}
+
+#[tokio::test]
+async fn the_ca_key_stays_apart_bundles_hold_one_node_and_nodes_can_be_added() {
+    let dir = tempfile::tempdir().unwrap();
+    let certs = dir.path().join("certs");
+    init_cluster(&certs, &["store-0", "client-0"]).unwrap();
+    let ca_key = std::fs::read_to_string(certs.join("ca").join("ca.key")).unwrap();
+    assert!(!certs.join("ca.key").exists());
+
+    // A bundle has what one node needs and nothing else.
+    let out = dir.path().join("client-0-bundle");
+    bundle(&certs, "client-0", &out).unwrap();
+    let mut files: Vec<String> = std::fs::read_dir(&out)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .collect();
+    files.sort();
+    assert_eq!(files, ["ca.pem", "client-0.key", "client-0.pem"]);
+    for f in &files {
+        let text = std::fs::read_to_string(out.join(f)).unwrap();
+        assert_ne!(text, ca_key, "{f} is the CA key");
+    }
+    let err = bundle(&certs, "client-0", &out).unwrap_err();
+    assert!(err.to_string().contains("already exists"), "{err}");
+    let err = bundle(&certs, "client-7", &dir.path().join("x")).unwrap_err();
+    assert!(err.to_string().contains("client-7.pem"), "{err}");
+
+    // A node added later, from the same CA; the others keep theirs.
+    let before = std::fs::read(certs.join("client-0.pem")).unwrap();
+    add_nodes(&certs, None, &["client-1"]).unwrap();
+    assert_eq!(std::fs::read(certs.join("client-0.pem")).unwrap(), before);
+    let err = add_nodes(&certs, None, &["client-0"]).unwrap_err();
+    assert!(matches!(err, CertError::NodeExists(_)), "{err}");
+
+    // The bundled node and the added one both reach the store.
+    let store = NodeIdentity::load(&certs, &name("store-0")).unwrap();
+    let (s, ts) = node(&store, Role::Store).await;
+    for id in [
+        NodeIdentity::load(&out, &name("client-0")).unwrap(),
+        NodeIdentity::load(&certs, &name("client-1")).unwrap(),
+    ] {
+        let (c, tc) = node(&id, Role::Client).await;
+        tc.connect(name("store-0"), ts.local_addr().unwrap());
+        guard(tc.wait_connected(&name("store-0"))).await.unwrap();
+        ping_pong(&c, &s, 1).await;
+    }
+
+    // Another CA's key cannot issue for this folder; a folder without its
+    // CA key says where to look.
+    let elsewhere = dir.path().join("other");
+    let other_ca = dir.path().join("other-ca");
+    init_cluster_in(&elsewhere, Some(&other_ca), &["store-0"]).unwrap();
+    assert!(other_ca.join("ca.key").exists() && !elsewhere.join("ca").exists());
+    let err = add_nodes(&certs, Some(&other_ca), &["client-2"]).unwrap_err();
+    assert!(matches!(err, CertError::CaMismatch { .. }), "{err}");
+    let err = add_nodes(&elsewhere, None, &["client-2"]).unwrap_err();
+    assert!(err.to_string().contains("the CA key is missing"), "{err}");
+    add_nodes(&elsewhere, Some(&other_ca), &["client-2"]).unwrap();
+    assert!(
+        init_cluster(&certs, &["x"]).is_err(),
+        "a CA is never replaced"
+    );
 }

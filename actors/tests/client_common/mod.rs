@@ -283,7 +283,7 @@ pub async fn render_frame(
         }
     }
     assert!(hit_samples > 0, "the tiles carry their hit samples");
-    fe.scheduler
+    fe.display
         .send(
             client,
             Message::Shutdown(Shutdown {
