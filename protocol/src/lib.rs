@@ -40,11 +40,12 @@ pub type VoxelId = u32;
 /// start and assignment, tile owners) and the shading render settings;
 /// 3: tile reports carry hit positions (reprojection affinity);
 /// 4: tile owners carry the frame's misses (the prefetcher's throttle);
-/// 5: tile and frame statistics carry the voxel bytes after decompression.
-pub const PROTOCOL_VERSION: u32 = 5;
+/// 5: tile and frame statistics carry the voxel bytes after decompression;
+/// 6: a client reports a voxel no store serves intact (`VoxelLost`).
+pub const PROTOCOL_VERSION: u32 = 6;
 
 /// ALPN protocol id spoken over QUIC.
-pub const ALPN: &[u8] = b"dray/5";
+pub const ALPN: &[u8] = b"dray/6";
 
 /// Largest compressed voxel blob a store may send.
 pub const MAX_VOXEL_BYTES: usize = 64 << 20;

@@ -190,6 +190,9 @@ pub struct DisplaySummary {
     pub duplicate_tiles: u64,
     /// Pixels that never arrived in frames shown anyway (a lost tile).
     pub missing_pixels: u64,
+    /// Voxels no store served intact, rendered as empty
+    /// (`clients.corrupt_voxel = "skip"`).
+    pub voxels_missing: std::collections::BTreeSet<u32>,
 }
 
 impl DisplaySummary {
@@ -218,7 +221,13 @@ impl DisplaySummary {
             tiles_ignored: 0,
             duplicate_tiles: 0,
             missing_pixels: 0,
+            voxels_missing: Default::default(),
         }
+    }
+
+    /// Counts voxel `id` as rendered empty; whether it is new.
+    pub(crate) fn voxel_missing(&mut self, id: u32) -> bool {
+        self.voxels_missing.insert(id)
     }
 
     /// Adds a shown frame's metrics.
@@ -286,6 +295,14 @@ impl DisplaySummary {
                 self.tiles_ignored, self.missing_pixels
             );
         }
+        if !self.voxels_missing.is_empty() {
+            let ids: Vec<String> = self.voxels_missing.iter().map(u32::to_string).collect();
+            s += &format!(
+                "voxels missing (no store served them intact; rendered as empty): {} (ids {})\n",
+                self.voxels_missing.len(),
+                ids.join(", ")
+            );
+        }
         if let Some(why) = &self.stopped_early {
             s += &format!("stopped early: {why}\n");
         }
@@ -319,6 +336,7 @@ impl DisplaySummary {
             "tiles_ignored": self.tiles_ignored,
             "duplicate_tiles": self.duplicate_tiles,
             "missing_pixels": self.missing_pixels,
+            "voxels_missing": self.voxels_missing,
             "frames": self.frames,
         })
     }
