@@ -615,7 +615,10 @@ fn run(cli: Cli) -> Result<ExitCode> {
             config,
             triangles,
             frames,
-        } => demo(&config, triangles, frames)?,
+        } => {
+            CameraPath::check_frames(frames).map_err(|m| anyhow::anyhow!("--frames: {m}"))?;
+            demo(&config, triangles, frames)?
+        }
         Command::Cluster {
             config,
             frames,
@@ -670,7 +673,15 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 .enable_all()
                 .build()
                 .context("starting the async runtime")?;
-            let outcome = rt.block_on(dray_actors::cluster::node(&cfg, role, index, &opts))?;
+            let outcome = match rt.block_on(dray_actors::cluster::node(&cfg, role, index, &opts)) {
+                Ok(outcome) => outcome,
+                Err(e @ dray_actors::cluster::ClusterError::AddressInUse { .. }) => {
+                    // Starting this node again would fail the same way.
+                    eprintln!("error: {e}");
+                    return Ok(ExitCode::from(dray_actors::launch::EXIT_NO_RESTART));
+                }
+                Err(e) => return Err(e.into()),
+            };
             if let NodeOutcome::Display(summary) = outcome {
                 println!("summary {}", summary.to_json());
             }
@@ -709,6 +720,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
                         "evicted": c.evicted,
                         "peak_cache_bytes": c.peak_cache_bytes,
                         "prefetched": c.prefetched,
+                        "voxels_lost": c.voxels_lost,
                     })
                 })
                 .collect();
@@ -754,6 +766,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
             println!("summary: {}", report.dir.join("summary.md").display());
         }
         Command::Walkthrough { db, frames, out } => {
+            CameraPath::check_frames(frames).map_err(|m| anyhow::anyhow!("--frames: {m}"))?;
             let db = Database::open(&db)?;
             let frames = write_walkthrough(&db, frames, &out)?;
             println!("{}: {frames} frames", out.display());
@@ -842,7 +855,7 @@ fn print_report(summary: &serde_json::Value, events: &[String], json: bool) {
 }
 
 /// Writes the walkthrough of `db` (temporary file, then rename); returns
-/// its number of frames (`frames`, clamped to what a path may hold).
+/// its number of frames.
 fn write_walkthrough(db: &Database, frames: u32, out: &Path) -> Result<u32> {
     let path = CameraPath::walkthrough(&db.manifest.model_bounds, frames);
     let tmp = out.with_extension("toml.tmp");
@@ -901,6 +914,8 @@ fn demo(config: &Path, triangles: u64, frames: u32) -> Result<()> {
 }
 
 fn render(a: &RenderArgs) -> Result<()> {
+    dray_config::check_image_side("--width", a.width)?;
+    dray_config::check_image_side("--height", a.height)?;
     let db = Database::open(&a.db)?;
     let load = std::time::Instant::now();
     let source = ResidentSource::load(&db)?;

@@ -377,3 +377,39 @@ fn experiment_runs_a_file_and_names_a_bad_key() {
     );
     assert!(!msg.contains("panicked"), "{msg}");
 }
+
+/// `dray render` refuses an image size the config refuses, in the config's
+/// words (before touching the database, so a missing one does not matter),
+/// and `dray walkthrough` refuses 0 frames instead of writing one.
+#[test]
+fn image_sizes_and_frame_counts_out_of_range_are_refused_with_the_config_words() {
+    let dir = tempfile::tempdir().unwrap();
+    let db = dir.path().join("none.db");
+    let out = dray(&["render", s(&db), "--width", "100000", "--height", "100000"]);
+    assert!(!out.status.success(), "{}", text(&out));
+    let words = dray_config::check_image_side("render.width", 100000)
+        .unwrap_err()
+        .to_string();
+    let problem = words.strip_prefix("render.width: ").unwrap();
+    assert!(
+        text(&out).contains(&format!("error: --width: {problem}")),
+        "{}",
+        text(&out)
+    );
+    let out = dray(&["render", s(&db), "--height", "0"]);
+    assert!(
+        text(&out).contains("error: --height: 0 is not in 1..=16384"),
+        "{}",
+        text(&out)
+    );
+
+    let walk = dir.path().join("walk.toml");
+    let out = dray(&["walkthrough", s(&db), "--frames", "0", "--out", s(&walk)]);
+    assert!(!out.status.success(), "{}", text(&out));
+    assert!(
+        text(&out).contains("error: --frames: 0 is not in 1..=100000"),
+        "{}",
+        text(&out)
+    );
+    assert!(!walk.exists());
+}

@@ -407,3 +407,124 @@ fn a_node_with_another_cas_certificate_stops_the_cluster_saying_why() {
     );
     assert!(!stderr.contains("did not come up"), "{stderr}");
 }
+
+/// Whether process `pid` still runs (a zombie, dead but not yet reaped by
+/// whoever inherited it, does not).
+#[cfg(target_os = "linux")]
+fn running(pid: u32) -> bool {
+    match std::fs::read_to_string(format!("/proc/{pid}/stat")) {
+        // The state follows the command name in parentheses.
+        Ok(stat) => stat
+            .rsplit_once(") ")
+            .is_some_and(|(_, rest)| !rest.starts_with('Z') && !rest.starts_with('X')),
+        Err(_) => false,
+    }
+}
+
+/// Starts a long walk, sends `signal` to `dray cluster` once every node
+/// has joined, and checks that no node process is left (polling for at
+/// most 10 s).
+#[cfg(target_os = "linux")]
+fn no_node_outlives(signal: &str) {
+    let (dir, config) = setup(100_000, 2);
+    let (mut cluster, rx) = start_cluster(&config);
+    let lines = until(&rx, |l| {
+        l.starts_with("all ") && l.ends_with("nodes joined")
+    });
+    let nodes = [
+        "store-0",
+        "store-1",
+        "scheduler",
+        "display",
+        "client-0",
+        "client-1",
+    ];
+    let pids: Vec<(&str, u32)> = nodes.iter().map(|&n| (n, pid_of(&lines, n))).collect();
+    assert!(pids.iter().all(|&(_, p)| running(p)), "{pids:?}");
+    let ok = Command::new("kill")
+        .args([signal, &cluster.0.id().to_string()])
+        .status()
+        .unwrap()
+        .success();
+    assert!(ok, "kill {signal}");
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        let left: Vec<_> = pids.iter().filter(|&&(_, p)| running(p)).collect();
+        if left.is_empty() {
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "after {signal} to dray cluster these nodes still run: {left:?}"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    // The supervisor itself ended too.
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while cluster.0.try_wait().unwrap().is_none() {
+        assert!(Instant::now() < deadline, "dray cluster still runs");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    drop(dir);
+}
+
+#[cfg(target_os = "linux")]
+#[test]
+fn sigterm_to_dray_cluster_leaves_no_node_running() {
+    no_node_outlives("-TERM");
+}
+
+#[cfg(target_os = "linux")]
+#[test]
+fn sigkill_to_dray_cluster_leaves_no_node_running() {
+    no_node_outlives("-KILL");
+}
+
+#[cfg(target_os = "linux")]
+#[test]
+fn sighup_to_dray_cluster_leaves_no_node_running() {
+    no_node_outlives("-HUP");
+}
+
+/// A store whose port another process holds is not restarted: the run
+/// ends at once, naming the node, the address and the config key.
+#[test]
+fn a_port_in_use_fails_once_naming_the_node_the_address_and_the_key() {
+    let (dir, config) = setup(10, 1);
+    let cfg = dray_config::Config::load(&config).unwrap();
+    let addr = cfg.store_addrs().unwrap()[0];
+    let _holder = std::net::UdpSocket::bind(addr).unwrap();
+    let mut child = Command::new(env!("CARGO_BIN_EXE_dray"))
+        .args(["cluster", config.to_str().unwrap()])
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut err = child.stderr.take().unwrap();
+    let reader = std::thread::spawn(move || {
+        let mut s = String::new();
+        let _ = std::io::Read::read_to_string(&mut err, &mut s);
+        s
+    });
+    let deadline = Instant::now() + Duration::from_secs(120);
+    let status = loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            break s;
+        }
+        if Instant::now() > deadline {
+            let _ = child.kill();
+            panic!("dray cluster with a store's port taken never ended");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    let stderr = reader.join().unwrap();
+    assert!(!status.success(), "{stderr}");
+    assert!(!stderr.contains("restarting"), "{stderr}");
+    assert!(stderr.contains("\nerror: store-0 cannot run"), "{stderr}");
+    let why = format!(
+        "node store-0: cannot listen on {addr}: the address is in use (another dray running? stop it, or change stores[0].address in the config)"
+    );
+    assert!(stderr.contains(&why), "{stderr}");
+    drop(dir);
+}

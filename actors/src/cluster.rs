@@ -35,7 +35,7 @@ use crate::{ActorError, Shard};
 use dray_config::{Config, LinkConfig};
 use dray_protocol::{Address, Camera, Message, Name, Role, Shutdown};
 use dray_runtime::certs::NodeIdentity;
-use dray_runtime::quic::QuicTransport;
+use dray_runtime::quic::{QuicError, QuicTransport};
 use dray_runtime::relay::{shared_link, RelayShaping, UdpRelay};
 use dray_runtime::shaping::SharedShaper;
 use dray_runtime::{Bus, InProcNet, LinkShape, Mailbox, NodeLink};
@@ -60,6 +60,17 @@ pub enum ClusterError {
     /// An actor failed.
     #[error(transparent)]
     Actor(#[from] ActorError),
+    /// A node's address is taken by another process: starting it again
+    /// fails the same way.
+    #[error("node {node}: cannot listen on {addr}: the address is in use (another dray running? stop it, or change {key} in the config)")]
+    AddressInUse {
+        /// The node.
+        node: String,
+        /// Its address.
+        addr: SocketAddr,
+        /// The config key that sets it.
+        key: String,
+    },
     /// A node could not start (certificates, sockets, names).
     #[error("node {node}: {message}")]
     Node {
@@ -198,6 +209,7 @@ fn client_options(cfg: &Config, opts: &RunOptions) -> Result<ClientOptions, Clus
         max_tiles_ahead: c.most_tiles_ahead() as usize,
         preload: c.preload,
         pixel_compression: c.pixel_compression,
+        corrupt_voxel: c.corrupt_voxel,
         isa: opts.isa.unwrap_or_else(Isa::detect),
         stores: store_routes(cfg)?,
         scheduler: names::scheduler(),
@@ -555,6 +567,24 @@ pub async fn node(
             ),
         )
     })?;
+    let listen_key = match role {
+        Role::Scheduler => "scheduler.address".to_string(),
+        Role::Display => "display.address".to_string(),
+        Role::Store => format!("stores[{index}].address"),
+        _ => "clients.bind".to_string(),
+    };
+    let bind_err =
+        |addr: SocketAddr, what: &str, e: &dyn std::fmt::Display, io: Option<&std::io::Error>| {
+            if io.is_some_and(|io| io.kind() == std::io::ErrorKind::AddrInUse) {
+                ClusterError::AddressInUse {
+                    node: me.to_string(),
+                    addr,
+                    key: listen_key.clone(),
+                }
+            } else {
+                node_err(&me, format!("{what} {addr}: {e}"))
+            }
+        };
     let listen = match role {
         Role::Scheduler => cfg.scheduler_addr()?,
         Role::Display => cfg.display_addr()?,
@@ -593,7 +623,13 @@ pub async fn node(
     };
     let transport = QuicTransport::start(&bus, &identity, quic_listen)
         .await
-        .map_err(|e| node_err(&me, format!("listening on {quic_listen}: {e}")))?;
+        .map_err(|e| {
+            let io = match &e {
+                QuicError::Io(io) => Some(io),
+                _ => None,
+            };
+            bind_err(quic_listen, "listening on", &e, io)
+        })?;
     let mut links = Links {
         transport: transport.clone(),
         _relays: Vec::new(),
@@ -609,7 +645,7 @@ pub async fn node(
         };
         let relay = UdpRelay::start_shaped(listen, node, shaping)
             .await
-            .map_err(|e| node_err(&me, format!("uplink relay on {listen}: {e}")))?;
+            .map_err(|e| bind_err(listen, "uplink relay on", &e, Some(&e)))?;
         links._relays.push(relay);
     }
     let stores = cfg.store_addrs()?;

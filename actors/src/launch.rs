@@ -9,10 +9,15 @@
 //! (no camera path, a web viewer) runs until Ctrl-C: the terminal's
 //! SIGINT reaches the nodes too, the display ends with its summary, and
 //! the supervisor waits for it (up to `STOP_TIMEOUT`; a second Ctrl-C
-//! stops everything at once).
+//! stops everything at once). SIGTERM and SIGHUP count as Ctrl-C (the
+//! supervisor passes them on to the nodes as SIGINT, which a terminal
+//! would have sent them). Every node dies with the supervisor, however
+//! it ends ([`dray_runtime::process::die_with_parent`]).
 //!
 //! A node that dies while the cluster comes up ends the startup at once,
-//! named with its last log lines (a store is restarted instead).
+//! named with its last log lines (a store is restarted instead). A node
+//! that exits with [`EXIT_NO_RESTART`] (its address is taken) ends the run
+//! at once whatever its role: starting it again would fail the same way.
 //!
 //! Faults while running: a client that dies is reported and the others
 //! take its tiles (the scheduler reassigns them); a store that dies is
@@ -37,6 +42,9 @@ const STOP_TIMEOUT: Duration = Duration::from_secs(10);
 const STORE_RESTARTS: u32 = 3;
 /// Log lines kept per node, to say why it died.
 const LOG_TAIL: usize = 12;
+/// The exit code of a node that would fail the same way if started again
+/// (its address is taken): the run ends at once, nothing is restarted.
+pub const EXIT_NO_RESTART: u8 = 3;
 
 /// Why `dray cluster` failed.
 #[derive(Debug, thiserror::Error)]
@@ -59,6 +67,14 @@ pub enum LaunchError {
         /// Its last log lines.
         log: String,
     },
+    /// A node cannot run, and starting it again would not help.
+    #[error("{node} cannot run{log}")]
+    Refused {
+        /// The node.
+        node: String,
+        /// Its last log lines (which say why).
+        log: String,
+    },
     /// Nodes did not come up in time.
     #[error("the cluster did not come up within {}s; waiting for {waiting}", STARTUP_TIMEOUT.as_secs())]
     Startup {
@@ -71,6 +87,37 @@ pub enum LaunchError {
     /// Certificates could not be made.
     #[error("certificates: {0}")]
     Certs(String),
+    /// The stop signals could not be caught.
+    #[error("cannot catch SIGINT, SIGTERM and SIGHUP: {0}")]
+    Signals(std::io::Error),
+}
+
+/// The signals that stop a cluster as Ctrl-C does.
+struct StopSignals {
+    interrupt: tokio::signal::unix::Signal,
+    terminate: tokio::signal::unix::Signal,
+    hangup: tokio::signal::unix::Signal,
+}
+
+impl StopSignals {
+    fn new() -> std::io::Result<StopSignals> {
+        use tokio::signal::unix::{signal, SignalKind};
+        Ok(StopSignals {
+            interrupt: signal(SignalKind::interrupt())?,
+            terminate: signal(SignalKind::terminate())?,
+            hangup: signal(SignalKind::hangup())?,
+        })
+    }
+
+    /// The next one: whether it came from a terminal (SIGINT, which the
+    /// nodes got too) and its name.
+    async fn next(&mut self) -> (bool, &'static str) {
+        tokio::select! {
+            _ = self.interrupt.recv() => (true, "SIGINT"),
+            _ = self.terminate.recv() => (false, "SIGTERM"),
+            _ = self.hangup.recv() => (false, "SIGHUP"),
+        }
+    }
 }
 
 /// What a supervised run produced.
@@ -160,6 +207,7 @@ fn spawn(
     tx: &mpsc::Sender<Event>,
 ) -> Result<(), LaunchError> {
     let mut cmd = Command::new(exe);
+    dray_runtime::process::die_with_parent(&mut cmd);
     if std::env::var_os("RUST_LOG").is_none() {
         // The nodes' routine info lines would drown the summary.
         cmd.env("RUST_LOG", "warn");
@@ -215,6 +263,7 @@ pub async fn cluster(
     extra: &[String],
 ) -> Result<ClusterReport, LaunchError> {
     let clients = cfg.clients.count as usize;
+    let mut signals = StopSignals::new().map_err(LaunchError::Signals)?;
     if ensure_certs(cfg)? {
         println!(
             "made the cluster certificates in {}",
@@ -342,7 +391,10 @@ pub async fn cluster(
                         continue;
                     }
                     let what = status_text(&status);
-                    if summary.is_some() {
+                    if status.code() == Some(i32::from(EXIT_NO_RESTART)) {
+                        died = Some(i);
+                        fatal = Some(LaunchError::Refused { node: name, log: tail_text(&procs[i]) });
+                    } else if summary.is_some() {
                         events.push(format!("{name} ended with {what} after the run"));
                     } else if !all_ready && !name.starts_with("store-") {
                         // The display waits for every client before it is
@@ -390,10 +442,17 @@ pub async fn cluster(
                     }
                 }
             }
-            _ = tokio::signal::ctrl_c() => {
+            (from_terminal, name) = signals.next() => {
+                if !from_terminal {
+                    for p in &procs {
+                        if let Some(pid) = p.child.as_ref().and_then(Child::id) {
+                            let _ = dray_runtime::process::interrupt(pid);
+                        }
+                    }
+                }
                 if interactive && all_ready && interrupted.is_none() {
                     eprintln!("cluster: interrupted; waiting for the display's summary (Ctrl-C again to stop at once)");
-                    events.push("interrupted: the interactive run ended".into());
+                    events.push(format!("interrupted ({name}): the interactive run ended"));
                     interrupted = Some(tokio::time::Instant::now());
                     continue;
                 }
@@ -439,7 +498,9 @@ pub async fn cluster(
         }
         t.push_back(line);
     }
-    if let (Err(LaunchError::Died { log, .. }), Some(i)) = (&mut outcome, died) {
+    if let (Err(LaunchError::Died { log, .. } | LaunchError::Refused { log, .. }), Some(i)) =
+        (&mut outcome, died)
+    {
         *log = tail_text(&procs[i]);
     }
     outcome?;

@@ -118,6 +118,11 @@ impl StoreRoutes {
         owners().nth(k).map_or(&self.stores[0].1, |(_, a)| a)
     }
 
+    /// How many stores serve voxel `id`.
+    pub fn owners(&self, id: VoxelId) -> usize {
+        self.stores.iter().filter(|(s, _)| s.owns(id)).count()
+    }
+
     /// Every store, in order.
     pub fn all(&self) -> impl Iterator<Item = &Address> {
         self.stores.iter().map(|(_, a)| a)

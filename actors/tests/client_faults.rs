@@ -93,6 +93,7 @@ fn options(mode: MissMode) -> ClientOptions {
         stores: routes(1),
         scheduler: names::scheduler(),
         display: names::display(),
+        corrupt_voxel: Default::default(),
     }
 }
 

@@ -41,6 +41,7 @@ fn options(cache_bytes: u64, mode: MissMode, stores: usize) -> ClientOptions {
         stores: routes(stores),
         scheduler: names::scheduler(),
         display: names::display(),
+        corrupt_voxel: Default::default(),
     }
 }
 
@@ -144,6 +145,14 @@ async fn suspend_mode_with_a_cache_of_three_voxels_equals_the_reference() {
     assert!(s.evicted > 0, "{s:?}");
     assert!(s.refetched > 0, "{s:?}");
     assert!(s.misses > 0 && s.rays > 0, "{s:?}");
+    // The tiles report the voxels they missed, fewer than they touched.
+    let o = &r.out;
+    assert!(
+        o.misses > 0 && o.misses <= o.touched,
+        "{} of {}",
+        o.misses,
+        o.touched
+    );
     assert_eq!(s.prefetched, 0);
 }
 

@@ -58,6 +58,31 @@ use std::time::Duration;
 pub const MAX_TILE_SIZE: u32 = 256;
 /// Largest image side.
 pub const MAX_IMAGE_SIZE: u32 = 16384;
+/// Most bytes of pixels the display may hold for the frames in flight
+/// (`display.frames_ahead` frames of `render.width` x `render.height`).
+pub const MAX_FRAMES_IN_FLIGHT_BYTES: u64 = 4 << 30;
+
+/// Checks an image side: `render.width` and `render.height` here, and
+/// `dray render`'s `--width` and `--height`; the error names `key`.
+pub fn check_image_side(key: &str, side: u32) -> Result<(), ConfigError> {
+    if side == 0 || side > MAX_IMAGE_SIZE {
+        return Err(invalid(
+            key,
+            format!("{side} is not in 1..={MAX_IMAGE_SIZE}"),
+        ));
+    }
+    Ok(())
+}
+
+/// Bytes the display holds per pixel of a frame in flight: the colors,
+/// and depth and primitive ids when the tiles carry them.
+pub fn display_bytes_per_pixel(depth_and_ids: bool) -> u64 {
+    if depth_and_ids {
+        12
+    } else {
+        4
+    }
+}
 
 /// Why a config is unusable.
 #[derive(Debug, thiserror::Error)]
@@ -358,6 +383,19 @@ pub enum MissMode {
     Block,
 }
 
+/// What a run does with a voxel that no store serves intact (every store
+/// serving it sent a corrupt blob or refused it, as often as a client tries).
+#[derive(Clone, Copy, Debug, Default, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "lowercase")]
+pub enum CorruptVoxel {
+    /// End the run with an error naming the voxel and the store.
+    #[default]
+    Fail,
+    /// Render on with the voxel treated as empty; each such voxel is logged
+    /// once and counted in the run's summary.
+    Skip,
+}
+
 /// The render clients.
 #[derive(Clone, Debug, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
@@ -409,6 +447,10 @@ pub struct ClientsConfig {
     /// Host the clients bind (they dial out; the port is picked).
     #[serde(default = "default_bind")]
     pub bind: String,
+    /// A voxel no store serves intact: `"fail"` ends the run, `"skip"`
+    /// renders it as empty.
+    #[serde(default)]
+    pub corrupt_voxel: CorruptVoxel,
 }
 
 /// The most tiles a client asks for ahead when the config does not say.
@@ -435,6 +477,10 @@ fn default_tiles_ahead() -> u32 {
 fn default_bind() -> String {
     "127.0.0.1".into()
 }
+
+/// The slowest link or disk a config may model, Mbit/s: a QUIC datagram
+/// then takes about 0.1 s, which handshakes and timeouts still allow.
+pub const MIN_BANDWIDTH_MBPS: f64 = 0.1;
 
 /// Shaping of one link class, each direction.
 #[derive(Clone, Copy, Debug, Default, Deserialize, PartialEq)]
@@ -489,10 +535,12 @@ impl LinkConfig {
         ms(self.latency_ms, "latency_ms")?;
         ms(self.jitter_ms, "jitter_ms")?;
         if let Some(b) = self.bandwidth_mbps {
-            if !(b.is_finite() && b > 0.0 && b <= 1e6) {
+            if !(b.is_finite() && (MIN_BANDWIDTH_MBPS..=1e6).contains(&b)) {
                 return Err(invalid(
                     format!("{key}.bandwidth_mbps"),
-                    format!("{b} is not a bandwidth above 0 and at most 1000000 Mbit/s"),
+                    format!(
+                        "{b} is not a bandwidth from {MIN_BANDWIDTH_MBPS} to 1000000 Mbit/s (slower, a link cannot carry the cluster's messages in time)"
+                    ),
                 ));
             }
         }
@@ -670,11 +718,8 @@ impl Config {
     /// Checks every value; the error names the first bad key.
     pub fn validate(&self) -> Result<(), ConfigError> {
         let r = &self.render;
-        for (k, v) in [("render.width", r.width), ("render.height", r.height)] {
-            if v == 0 || v > MAX_IMAGE_SIZE {
-                return Err(invalid(k, format!("{v} is not in 1..={MAX_IMAGE_SIZE}")));
-            }
-        }
+        check_image_side("render.width", r.width)?;
+        check_image_side("render.height", r.height)?;
         if r.tile_size == 0 || r.tile_size > MAX_TILE_SIZE {
             return Err(invalid(
                 "render.tile_size",
@@ -728,6 +773,23 @@ impl Config {
             return Err(invalid(
                 "display.frames_ahead",
                 format!("{} is not in 1..=16", self.display.frames_ahead),
+            ));
+        }
+        let ahead = u64::from(self.display.frames_ahead);
+        let bpp = display_bytes_per_pixel(r.depth_and_ids);
+        let in_flight = u64::from(r.width) * u64::from(r.height) * ahead * bpp;
+        if in_flight > MAX_FRAMES_IN_FLIGHT_BYTES {
+            return Err(invalid(
+                "display.frames_ahead",
+                format!(
+                    "{ahead} frames of {}x{} in flight hold {:.1} GiB of pixels ({bpp} bytes a pixel{}), more than {} GiB: lower display.frames_ahead, or render.width and render.height{}",
+                    r.width,
+                    r.height,
+                    in_flight as f64 / (1u64 << 30) as f64,
+                    if r.depth_and_ids { " with render.depth_and_ids" } else { "" },
+                    MAX_FRAMES_IN_FLIGHT_BYTES >> 30,
+                    if r.depth_and_ids { ", or turn off render.depth_and_ids" } else { "" },
+                ),
             ));
         }
         if self.scheduler.tile_deadline_ms == 0 {

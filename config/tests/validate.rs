@@ -260,7 +260,27 @@ fn node_links_are_unshaped_by_default_and_validated_by_key() {
     assert_names(
         with_table("[links.store_uplink]\nbandwidth_mbps = 0.0").unwrap_err(),
         "links.store_uplink.bandwidth_mbps",
-        "above 0",
+        "from 0.1 to 1000000 Mbit/s",
+    );
+    // Positive but too slow to carry anything: refused here, naming the
+    // key, not at start naming a node.
+    assert_names(
+        with_table("[links.client_downlink]\nbandwidth_mbps = 1e-9").unwrap_err(),
+        "links.client_downlink.bandwidth_mbps",
+        "from 0.1 to 1000000 Mbit/s",
+    );
+    assert_names(
+        broken("# bandwidth_mbps = 100.0", "bandwidth_mbps = 0.05"),
+        "links.client_store.bandwidth_mbps",
+        "from 0.1",
+    );
+    assert_eq!(
+        with_table("[links.client_downlink]\nbandwidth_mbps = 0.1")
+            .unwrap()
+            .links
+            .client_downlink
+            .bandwidth_bps(),
+        Some(100_000)
     );
     assert_names(
         with_table("[links.client_downlink]\nloss = 1.0").unwrap_err(),
@@ -270,7 +290,7 @@ fn node_links_are_unshaped_by_default_and_validated_by_key() {
     assert_names(
         with_table("[links.store_disk]\nbandwidth_mbps = -55.0").unwrap_err(),
         "links.store_disk.bandwidth_mbps",
-        "above 0",
+        "from 0.1",
     );
     assert_names(
         with_table("[links.store_disk]\nlatency_ms = 1e9").unwrap_err(),
@@ -282,5 +302,85 @@ fn node_links_are_unshaped_by_default_and_validated_by_key() {
         with_table("[links.store_disk]\nloss = 0.1").unwrap_err(),
         "",
         "unknown field `loss`",
+    );
+}
+
+#[test]
+fn image_sizes_are_checked_by_one_function_naming_the_key() {
+    assert_names(
+        broken("width = 1280", "width = 100000"),
+        "render.width",
+        "100000 is not in 1..=16384",
+    );
+    assert_names(
+        broken("height = 720", "height = 0"),
+        "render.height",
+        "0 is not in 1..=16384",
+    );
+    // The same words for the command line's flags (`dray render`).
+    let e = dray_config::check_image_side("--width", 100000).unwrap_err();
+    assert_eq!(e.to_string(), "--width: 100000 is not in 1..=16384");
+    assert!(dray_config::check_image_side("--height", 16384).is_ok());
+}
+
+#[test]
+fn frames_in_flight_are_bounded_in_memory() {
+    let big = |ahead: u32, ids: bool| {
+        example_text()
+            .replacen("width = 1280", "width = 16384", 1)
+            .replacen("height = 720", "height = 16384", 1)
+            .replacen("tile_size = 32", "tile_size = 64", 1)
+            .replacen(
+                "output = \"../../out\"",
+                &format!("output = \"../../out\"\nframes_ahead = {ahead}"),
+                1,
+            )
+            .replacen(
+                "reflectance = 0.6",
+                &format!("reflectance = 0.6\ndepth_and_ids = {ids}"),
+                1,
+            )
+    };
+    // 16 frames of 16384 x 16384 would hold 16 GiB of colors.
+    assert_names(
+        Config::parse(&big(16, false)).unwrap_err(),
+        "display.frames_ahead",
+        "16 frames of 16384x16384 in flight hold 16.0 GiB",
+    );
+    assert!(Config::parse(&big(4, false)).is_ok());
+    // Depth and ids triple the bytes a pixel.
+    let e = Config::parse(&big(2, true)).unwrap_err();
+    assert_names(e, "display.frames_ahead", "render.depth_and_ids");
+    assert!(Config::parse(&big(1, true)).is_ok());
+    // Small frames may have the most in flight.
+    let small = example_text().replacen(
+        "output = \"../../out\"",
+        "output = \"../../out\"\nframes_ahead = 16",
+        1,
+    );
+    assert!(Config::parse(&small).is_ok());
+}
+
+#[test]
+fn corrupt_voxel_is_fail_by_default_or_skip() {
+    use dray_config::CorruptVoxel;
+    let cfg = Config::parse(&example_text()).unwrap();
+    assert_eq!(cfg.clients.corrupt_voxel, CorruptVoxel::Fail);
+    let skip = example_text().replacen(
+        "preload = false",
+        "preload = false\ncorrupt_voxel = \"skip\"",
+        1,
+    );
+    assert_eq!(
+        Config::parse(&skip).unwrap().clients.corrupt_voxel,
+        CorruptVoxel::Skip
+    );
+    assert_names(
+        broken(
+            "preload = false",
+            "preload = false\ncorrupt_voxel = \"ignore\"",
+        ),
+        "corrupt_voxel",
+        "unknown variant `ignore`, expected `fail` or `skip`",
     );
 }

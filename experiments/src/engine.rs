@@ -78,8 +78,8 @@ fn render(cfg: &Config) -> Result<serde_json::Value, String> {
     use dray_actors::settings::{kernel_camera, kernel_settings, wire_settings};
     let db = dray_scene::db::Database::open(&cfg.scene.database)
         .map_err(|e| format!("scene.database: {e}"))?;
-    let source = dray_trace::scene::ResidentSource::load(&db)
-        .map_err(|e| format!("scene.database: {e}"))?;
+    let source =
+        dray_trace::scene::ResidentSource::load(&db).map_err(|e| format!("scene.database: {e}"))?;
     let top = dray_trace::scene::TopLevel::from_manifest(&db.manifest);
     let cameras = dray_actors::cluster::frame_cameras(cfg).map_err(|e| e.to_string())?;
     let threads = (cfg.clients.count as usize).saturating_mul(cfg.clients.threads as usize);

@@ -350,16 +350,16 @@ impl Plan<'_> {
         ];
         o.extend(self.fixed.iter().cloned());
         // The engine is no config key: the runner picks it per point.
-        o.extend(point.values.iter().filter(|(k, _)| k != ENGINE).map(|(k, v)| {
-            match walk_frames(v) {
+        o.extend(point.values.iter().filter(|(k, _)| k != ENGINE).map(
+            |(k, v)| match walk_frames(v) {
                 Some(n) if k == WALK_FRAMES => Override::new(
                     Origin::Sweep,
                     "render.camera_path",
                     path_value(&model::walk_file(self.dir, Some(n))),
                 ),
                 _ => Override::from_file(Origin::Sweep, k, v, exp_dir),
-            }
-        }));
+            },
+        ));
         let (cfg, table) = self.base.build(&self.exp.file, &o)?;
         Ok((cfg, table, run_dir))
     }

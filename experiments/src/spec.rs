@@ -322,7 +322,10 @@ impl Experiment {
 
     /// The engine of a point whose swept values are `values`: the swept
     /// [`ENGINE`], or the file's.
-    pub fn engine_of<'a>(&self, mut values: impl Iterator<Item = (&'a str, &'a toml::Value)>) -> Engine {
+    pub fn engine_of<'a>(
+        &self,
+        mut values: impl Iterator<Item = (&'a str, &'a toml::Value)>,
+    ) -> Engine {
         values
             .find(|(k, _)| *k == ENGINE)
             .and_then(|(_, v)| v.as_str().and_then(Engine::from_name))

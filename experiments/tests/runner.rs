@@ -513,5 +513,9 @@ fn the_engine_can_be_swept() {
     };
     assert_eq!(rays("sim").len(), 3);
     assert_eq!(rays("sim"), rays("render"));
-    assert_valid_plot(&report.dir, "plot1-fps-by-max_tiles_ahead", &["render", "sim"]);
+    assert_valid_plot(
+        &report.dir,
+        "plot1-fps-by-max_tiles_ahead",
+        &["render", "sim"],
+    );
 }

@@ -194,5 +194,11 @@ pub fn one_of_each(voxel_bytes: usize) -> Vec<Message> {
             ])
             .expect("one entry is under the bound"),
         }),
+        Message::VoxelLost(VoxelLost {
+            id: 37,
+            store: Name::new("store-1").expect("constant name is valid"),
+            reason: "checksum mismatch (4 tries)".into(),
+            skipped: false,
+        }),
     ]
 }

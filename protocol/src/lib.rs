@@ -40,7 +40,9 @@ pub type VoxelId = u32;
 /// start and assignment, tile owners) and the shading render settings;
 /// 3: tile reports carry hit positions (reprojection affinity);
 /// 4: tile owners carry the frame's misses (the prefetcher's throttle);
-/// 5: tile and frame statistics carry the voxel bytes after decompression.
+/// 5: tile and frame statistics carry the voxel bytes after decompression;
+/// 6: a client reports a voxel no store serves intact (`VoxelLost`), and
+/// tile and frame statistics carry the bytes each link class carried.
 pub const PROTOCOL_VERSION: u32 = 6;
 
 /// ALPN protocol id spoken over QUIC.

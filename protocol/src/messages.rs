@@ -183,7 +183,8 @@ pub struct TileStats {
     pub time_us: u64,
     /// Distinct voxels the tile's rays entered.
     pub voxels_touched: u32,
-    /// Voxel cache misses.
+    /// Voxel cache misses: distinct voxels the tile had to wait for (a
+    /// subset of those it touched).
     pub misses: u32,
     /// Bytes of voxels fetched for this tile.
     pub bytes_fetched: u64,
@@ -242,6 +243,22 @@ pub struct VoxelError {
     pub id: VoxelId,
     /// Why (at most [`MAX_TEXT_LEN`] bytes).
     pub message: String,
+}
+
+/// A client gives up on a voxel: every store serving it failed to send it
+/// intact (a checksum mismatch, a read error) as often as the client tries.
+/// The display ends the run naming the voxel and the store, or, when the
+/// client renders it as empty (`skipped`), counts it.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct VoxelLost {
+    /// The voxel.
+    pub id: VoxelId,
+    /// The store that failed it last.
+    pub store: Name,
+    /// Why (at most [`MAX_TEXT_LEN`] bytes).
+    pub reason: String,
+    /// Whether the client renders on with the voxel treated as empty.
+    pub skipped: bool,
 }
 
 /// The display moves the camera.
@@ -468,6 +485,8 @@ pub enum Message {
     FrameAssigned(FrameAssigned),
     /// Scheduler → prefetcher.
     TileOwners(TileOwners),
+    /// Client → display.
+    VoxelLost(VoxelLost),
 }
 
 /// The kind of a message, without its contents.
@@ -509,13 +528,15 @@ pub enum MessageKind {
     FrameAssigned,
     /// [`Message::TileOwners`].
     TileOwners,
+    /// [`Message::VoxelLost`].
+    VoxelLost,
     /// Not an actor message: the connection handshake.
     Handshake,
 }
 
 impl MessageKind {
     /// Every actor message kind, in wire tag order.
-    pub const ALL: [MessageKind; 18] = [
+    pub const ALL: [MessageKind; 19] = [
         MessageKind::RequestWork,
         MessageKind::AssignTile,
         MessageKind::TileDone,
@@ -534,6 +555,7 @@ impl MessageKind {
         MessageKind::FrameStart,
         MessageKind::FrameAssigned,
         MessageKind::TileOwners,
+        MessageKind::VoxelLost,
     ];
 
     /// The kind whose wire tag (first body byte) is `tag`.
@@ -575,6 +597,7 @@ impl MessageKind {
                     + MAX_STATS_CLIENTS * (crate::MAX_NAME_LEN + 1)
             }
             MessageKind::VoxelError | MessageKind::Shutdown => ENVELOPE_OVERHEAD + text,
+            MessageKind::VoxelLost => ENVELOPE_OVERHEAD + crate::MAX_NAME_LEN + 2 + text + 1,
             MessageKind::TileDone => {
                 ENVELOPE_OVERHEAD + 3 * (tile_px * 4 + 4) + MAX_REPORT_HITS * 12 + 2
                     // the stats' bytes_raw and link bytes: u64 varints
@@ -634,7 +657,7 @@ impl MessageKind {
             MessageKind::AssignTile | MessageKind::PrefetchHint => {
                 from == Scheduler && to == Client
             }
-            MessageKind::TileDone => from == Client && to == Display,
+            MessageKind::TileDone | MessageKind::VoxelLost => from == Client && to == Display,
             MessageKind::FetchVoxel => from == Client && to == Store,
             MessageKind::VoxelLoaded | MessageKind::VoxelError => from == Store && to == Client,
             // The display's camera to the assigner; the assigner's copy to
@@ -712,6 +735,7 @@ impl MessageKind {
             MessageKind::FrameStart => "frame_start",
             MessageKind::FrameAssigned => "frame_assigned",
             MessageKind::TileOwners => "tile_owners",
+            MessageKind::VoxelLost => "voxel_lost",
             MessageKind::Handshake => "handshake",
         }
     }
@@ -852,6 +876,7 @@ impl Message {
             Message::FrameStart(_) => MessageKind::FrameStart,
             Message::FrameAssigned(_) => MessageKind::FrameAssigned,
             Message::TileOwners(_) => MessageKind::TileOwners,
+            Message::VoxelLost(_) => MessageKind::VoxelLost,
         }
     }
 
@@ -907,6 +932,9 @@ impl Message {
             }
             Message::VoxelError(e) if e.message.len() > MAX_TEXT_LEN => {
                 Err(format!("message of {} bytes is too long", e.message.len()))
+            }
+            Message::VoxelLost(l) if l.reason.len() > MAX_TEXT_LEN => {
+                Err(format!("reason of {} bytes is too long", l.reason.len()))
             }
             Message::Shutdown(s) if s.reason.len() > MAX_TEXT_LEN => {
                 Err(format!("reason of {} bytes is too long", s.reason.len()))

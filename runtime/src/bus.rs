@@ -10,6 +10,9 @@ use tokio::sync::{mpsc, Notify};
 use tracing::{debug, error, warn};
 
 /// What an actor receives.
+// Nearly every delivery is a message: boxing it to shrink the rare peer
+// events would cost an allocation per message.
+#[allow(clippy::large_enum_variant)]
 #[derive(Clone, Debug, PartialEq)]
 pub enum Delivery {
     /// A message from another actor.

@@ -1,4 +1,5 @@
-//! Facts about the running process that commands report.
+//! Facts about the running process that commands report, and the ties
+//! between a supervisor and the node processes it starts.
 
 /// Peak resident set size of this process so far (Linux `VmHWM`), or
 /// `None` where the platform does not say.
@@ -7,6 +8,53 @@ pub fn peak_rss_bytes() -> Option<u64> {
     let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
     let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
     Some(kib * 1024)
+}
+
+/// Makes the process `cmd` starts die with this one, however this one
+/// ends (SIGKILL included), so that no node outlives its supervisor.
+pub fn die_with_parent(cmd: &mut tokio::process::Command) {
+    #[cfg(target_os = "linux")]
+    {
+        let parent = std::process::id() as libc::pid_t;
+        // A parent-death signal needs no code in the child and works on a
+        // SIGKILLed parent; it follows the forking thread, which for
+        // `dray cluster` is the one running the supervisor to its end.
+        // SAFETY: only async-signal-safe calls between fork and exec.
+        unsafe {
+            cmd.pre_exec(move || {
+                let sig = libc::SIGKILL as libc::c_ulong;
+                if libc::prctl(libc::PR_SET_PDEATHSIG, sig, 0, 0, 0) != 0 {
+                    return Err(std::io::Error::last_os_error());
+                }
+                // The parent died before the signal was asked for.
+                if libc::getppid() != parent {
+                    libc::_exit(1);
+                }
+                Ok(())
+            });
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    let _ = cmd;
+}
+
+/// Sends SIGINT to process `pid`, as a terminal's Ctrl-C would (an error
+/// where it is gone).
+pub fn interrupt(pid: u32) -> std::io::Result<()> {
+    #[cfg(unix)]
+    {
+        let pid = libc::pid_t::try_from(pid).map_err(std::io::Error::other)?;
+        // SAFETY: kill has no memory effects.
+        if unsafe { libc::kill(pid, libc::SIGINT) } != 0 {
+            return Err(std::io::Error::last_os_error());
+        }
+        Ok(())
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = pid;
+        Err(std::io::Error::other("signals need a Unix"))
+    }
 }
 
 #[cfg(test)]

@@ -9,7 +9,7 @@ use dray_scene::db::verify::verify;
 use dray_scene::db::{intersect, Database};
 use dray_scene::generate::{generate_plant, PlantParams};
 use dray_scene::geometry::triangle_touches_box;
-use dray_scene::preprocess::{preprocess, PreprocessOptions};
+use dray_scene::preprocess::{building_prefix, preprocess, PreprocessOptions};
 use dray_scene::progress::Progress;
 use dray_scene::voxel::Voxel;
 use glam::Vec3;
@@ -381,4 +381,42 @@ fn a_cancelled_run_cleans_up() {
         .map(|e| e.unwrap().file_name())
         .collect();
     assert_eq!(names, vec![std::ffi::OsString::from("m.ply")]);
+}
+
+/// A killed run's hidden build folder is removed by the next run into the
+/// same parent; a live run's, and one that names no builder, are kept.
+#[test]
+fn stale_build_folders_of_killed_runs_are_removed() {
+    let dir = tempfile::tempdir().unwrap();
+    write_ply(
+        &dir.path().join("m.ply"),
+        &random_soup(&mut Rng::new(11), 2000),
+    );
+    // A process that has exited (and been reaped): its pid runs nothing.
+    let mut gone = std::process::Command::new("true").spawn().unwrap();
+    let dead = gone.id();
+    gone.wait().unwrap();
+    let folder = |name: String| {
+        let p = dir.path().join(name);
+        std::fs::create_dir_all(p.join("spill")).unwrap();
+        std::fs::write(p.join("spill").join("input.spill"), vec![7u8; 4096]).unwrap();
+        p
+    };
+    let stale = folder(format!("{}abc123", building_prefix("db", dead)));
+    let stale_other_db = folder(format!("{}xyz789", building_prefix("other.vdb", dead)));
+    let live = folder(format!(
+        "{}def456",
+        building_prefix("db", std::process::id())
+    ));
+    let unnamed = folder(".db.building-Qw3rTy".to_string());
+    preprocess(
+        &PreprocessOptions::new(vec![dir.path().join("m.ply")], dir.path().join("db")),
+        &Progress::hidden(),
+    )
+    .unwrap();
+    assert!(!stale.exists(), "a killed run's folder is left");
+    assert!(!stale_other_db.exists(), "a killed run's folder is left");
+    assert!(live.exists(), "a live run's folder was removed");
+    assert!(unnamed.exists(), "a folder naming no builder was removed");
+    Database::open(&dir.path().join("db")).unwrap();
 }

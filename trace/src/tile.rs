@@ -64,6 +64,9 @@ pub struct TileStats {
     pub requested: u64,
     /// Distinct voxels the tile's rays entered.
     pub voxels_touched: u32,
+    /// Distinct voxels the tile met missing: on the same basis as
+    /// `voxels_touched` (each of them is entered once it arrives).
+    pub voxels_missed: u32,
     /// Time spent waiting for loads while no packet of the tile could run.
     pub stall: Duration,
     /// In the sampled primary packets, the BVH child boxes some lane
@@ -317,6 +320,7 @@ async fn drive<const N: usize, const BW: u32>(
         rgba: &mut rgba,
     };
     let mut stats = TileStats::default();
+    let mut missed = std::collections::HashSet::new();
     let mut fs = FrameStats::default();
     let touched: Vec<AtomicU64> = (0..ctx.top.voxel_count.div_ceil(64))
         .map(|_| AtomicU64::new(0))
@@ -377,6 +381,7 @@ async fn drive<const N: usize, const BW: u32>(
             }
             Step::Missing(id) => {
                 stats.misses += 1;
+                missed.insert(id);
                 match mode {
                     MissMode::Block => {
                         stats.requested += 1;
@@ -403,6 +408,7 @@ async fn drive<const N: usize, const BW: u32>(
     stats.reflection_rays = fs.reflection_rays;
     stats.child_hits = fs.child_hits;
     stats.child_lanes = fs.child_lanes;
+    stats.voxels_missed = u32::try_from(missed.len()).unwrap_or(u32::MAX);
     stats.voxels_touched = touched
         .iter()
         .map(|w| w.load(Ordering::Relaxed).count_ones())

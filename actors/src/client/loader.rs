@@ -8,8 +8,13 @@
 //! answers every waiter.
 //!
 //! Faults: a blob that fails its checksum (or does not decode) is logged
-//! and fetched again; a [`VoxelError`] is retried after a short delay;
-//! after [`MAX_TRIES`] failures the waiters get a [`LoadError`]. A fetch
+//! and fetched again; a [`VoxelError`] is retried after a short delay,
+//! each try asking the next store serving the voxel. After [`MAX_TRIES`]
+//! failures (and at least one per such store) the voxel is lost: the
+//! display hears of it once ([`VoxelLost`]), and by the
+//! `clients.corrupt_voxel` choice every request for it gets a
+//! [`LoadError`] (the run ends) or an empty voxel (the frame renders
+//! without it). A fetch
 //! whose store goes down is sent again when the store is back
 //! ([`Loader::peer_up`]) or when it times out ([`FETCH_TIMEOUT`]), each
 //! time to the next store that serves the voxel; a prefetch that times out
@@ -17,8 +22,10 @@
 
 use super::cache::VoxelCache;
 use crate::names::StoreRoutes;
-use dray_protocol::{Address, FetchVoxel, Message, Name, VoxelError};
+use dray_config::CorruptVoxel;
+use dray_protocol::{Address, FetchVoxel, Message, Name, VoxelError, VoxelLost};
 use dray_scene::db::manifest::{Manifest, VoxelEntry};
+use dray_scene::geometry::Aabb;
 use dray_scene::voxel::Voxel;
 use dray_trace::scene::{PreparedVoxel, VoxelRef, VoxelSource};
 use dray_trace::tile::{LoadError, VoxelLoader};
@@ -119,6 +126,40 @@ pub(crate) struct Decoded {
     pub result: Result<PreparedVoxel, String>,
 }
 
+/// What happens to voxels no store serves intact, and who hears of them.
+#[derive(Clone, Debug)]
+pub(crate) struct LostPolicy {
+    /// Fail the requests (the run ends) or answer them with an empty voxel.
+    pub mode: CorruptVoxel,
+    /// Where [`VoxelLost`] goes (the display).
+    pub report_to: Address,
+    /// The queue it is sent by (control messages, in order).
+    pub out: mpsc::UnboundedSender<(Address, Message)>,
+}
+
+/// A voxel no store served intact: why, and in skip mode what stands in
+/// for it.
+struct Lost {
+    message: String,
+    empty: Option<Arc<PreparedVoxel>>,
+}
+
+/// A voxel with no triangles in `bounds`: what a lost voxel renders as.
+fn empty_voxel(id: u32, bounds: Aabb) -> PreparedVoxel {
+    PreparedVoxel::new(
+        id,
+        &Voxel {
+            bounds,
+            positions: Vec::new(),
+            normals: Vec::new(),
+            colors: Vec::new(),
+            triangles: Vec::new(),
+            triangle_ids: Vec::new(),
+            bvh: Vec::new(),
+        },
+    )
+}
+
 /// Checks a blob against its manifest entry, decodes and prepares it.
 pub(crate) fn decode(id: u32, entry: &VoxelEntry, blob: &[u8]) -> Result<PreparedVoxel, String> {
     if blob.len() as u64 != entry.compressed_bytes {
@@ -173,6 +214,8 @@ pub(crate) struct LoaderStats {
     pub prefetched: u64,
     pub preloaded: u64,
     pub retries: u64,
+    /// Voxels no store served intact (rendered as empty in skip mode).
+    pub lost: u64,
 }
 
 /// The loader's state, driven by the client's actor task.
@@ -197,6 +240,8 @@ pub(crate) struct Loader {
     pub stats: LoaderStats,
     /// Bytes fetched that no tile has been charged with yet.
     unattributed: Fetched,
+    policy: LostPolicy,
+    lost: HashMap<u32, Lost>,
 }
 
 impl Loader {
@@ -213,6 +258,7 @@ impl Loader {
         max_inflight: usize,
         out: mpsc::UnboundedSender<(Address, Message)>,
         decoded: mpsc::UnboundedSender<Decoded>,
+        policy: LostPolicy,
     ) -> Loader {
         let n = manifest.voxels.len();
         Loader {
@@ -231,7 +277,28 @@ impl Loader {
             decoded,
             stats: LoaderStats::default(),
             unattributed: Fetched::default(),
+            policy,
+            lost: HashMap::new(),
         }
+    }
+
+    /// Failures after which voxel `id` is lost: [`MAX_TRIES`], and at
+    /// least one try at each store serving it.
+    fn tries(&self, id: u32) -> u32 {
+        MAX_TRIES.max(u32::try_from(self.routes.owners(id)).unwrap_or(u32::MAX))
+    }
+
+    /// The answer for a lost voxel: its empty stand-in (made resident
+    /// again, should the cache have dropped it) or the error.
+    fn lost_answer(&self, id: u32) -> Option<Answer> {
+        let l = self.lost.get(&id)?;
+        Some(match &l.empty {
+            Some(v) => Ok((self.cache.insert(v.clone()).0, Fetched::default())),
+            None => Err(LoadError {
+                voxel: id,
+                message: l.message.clone(),
+            }),
+        })
     }
 
     /// A render thread asks for a voxel.
@@ -249,6 +316,10 @@ impl Loader {
                     self.manifest.voxels.len()
                 ),
             }));
+            return;
+        }
+        if let Some(answer) = self.lost_answer(id) {
+            let _ = req.reply.send(answer);
             return;
         }
         match self.pending.get_mut(&id) {
@@ -279,7 +350,11 @@ impl Loader {
         self.hints.clear();
         let n = self.manifest.voxels.len();
         for &id in ids.iter().take(MAX_PREFETCH_QUEUE) {
-            if (id as usize) < n && !self.pending.contains_key(&id) && !self.cache.contains(id) {
+            if (id as usize) < n
+                && !self.pending.contains_key(&id)
+                && !self.cache.contains(id)
+                && !self.lost.contains_key(&id)
+            {
                 self.hints.push_back(id);
             }
         }
@@ -320,7 +395,10 @@ impl Loader {
                 return None;
             }
             self.preload.pop_front();
-            if self.pending.contains_key(&id) || self.cache.contains(id) {
+            if self.pending.contains_key(&id)
+                || self.cache.contains(id)
+                || self.lost.contains_key(&id)
+            {
                 continue;
             }
             self.preload_planned = planned;
@@ -465,12 +543,9 @@ impl Loader {
                 p.failures += 1;
                 warn!(voxel = d.id, store = %d.store, error = %why, tries = p.failures,
                     "voxel failed verification; fetching it again");
-                if p.failures >= MAX_TRIES {
-                    self.fail(
-                        d.id,
-                        p,
-                        format!("{why} from {} ({MAX_TRIES} tries)", d.store),
-                    );
+                if p.failures >= self.tries(d.id) {
+                    let why = format!("{why} ({} tries)", p.failures);
+                    self.lose(d.id, p, &d.store, why);
                 } else {
                     self.stats.retries += 1;
                     p.state = State::Queued;
@@ -495,7 +570,10 @@ impl Loader {
         };
         p.failures += 1;
         warn!(voxel = id, store = %from, error = %e.message, tries = p.failures, "store refused a voxel");
-        if p.failures >= MAX_TRIES || p.prefetch {
+        if p.failures >= self.tries(id) {
+            let why = format!("refused: {} ({} tries)", e.message, p.failures);
+            self.lose(id, p, &from, why);
+        } else if p.prefetch {
             let why = format!("{from} refused it: {}", e.message);
             self.fail(id, p, why);
         } else {
@@ -504,6 +582,41 @@ impl Loader {
             self.pending.insert(id, p);
         }
         self.pump();
+    }
+
+    /// No store serves voxel `id` intact (`store` failed it last, for
+    /// `reason`): the display hears of it, and its waiters, like every
+    /// later request, get what the policy says.
+    fn lose(&mut self, id: u32, p: Pending, store: &Address, reason: String) {
+        let skip = self.policy.mode == CorruptVoxel::Skip;
+        let empty = skip.then(|| {
+            let bounds = self.manifest.voxels[id as usize].bounds;
+            Arc::new(empty_voxel(id, bounds))
+        });
+        if skip {
+            warn!(voxel = id, %store, error = %reason,
+                "no store serves this voxel intact: rendering it as empty (clients.corrupt_voxel = \"skip\")");
+        } else {
+            warn!(voxel = id, %store, error = %reason, "no store serves this voxel intact");
+        }
+        self.stats.lost += 1;
+        let report = Message::VoxelLost(VoxelLost {
+            id,
+            store: store.node.clone(),
+            reason: crate::store::clip(reason.clone()),
+            skipped: skip,
+        });
+        let message = format!("{}: {reason}", store.node);
+        let _ = self
+            .policy
+            .out
+            .send((self.policy.report_to.clone(), report));
+        self.lost.insert(id, Lost { message, empty });
+        for w in p.waiters {
+            if let Some(answer) = self.lost_answer(id) {
+                let _ = w.send(answer);
+            }
+        }
     }
 
     fn fail(&mut self, id: u32, p: Pending, message: String) {
@@ -627,7 +740,13 @@ mod tests {
         let routes = StoreRoutes::new(vec![(Shard::ALL, store.clone())]).unwrap();
         let (out_tx, mut out) = mpsc::unbounded_channel();
         let (decoded_tx, mut decoded) = mpsc::unbounded_channel();
-        let mut loader = Loader::new(manifest, cache, routes, 1, out_tx, decoded_tx);
+        let (report_tx, _reports) = mpsc::unbounded_channel();
+        let policy = LostPolicy {
+            mode: CorruptVoxel::Fail,
+            report_to: crate::names::display(),
+            out: report_tx,
+        };
+        let mut loader = Loader::new(manifest, cache, routes, 1, out_tx, decoded_tx, policy);
         let (reply, mut answer) = oneshot::channel();
         loader.request(LoadRequest { id: 0, reply });
         let (reply, _answer1) = oneshot::channel();

@@ -38,7 +38,7 @@ use dray_runtime::{ActorRef, Delivery, LinkMeter, Mailbox};
 use dray_scene::db::manifest::Manifest;
 use dray_trace::scene::TopLevel;
 use dray_trace::tile::MissMode;
-use loader::{Fetched, Loader, Shared};
+use loader::{Fetched, Loader, LostPolicy, Shared};
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::Arc;
 use tokio::sync::mpsc;
@@ -87,6 +87,9 @@ pub struct ClientOptions {
     pub scheduler: Address,
     /// The display's address.
     pub display: Address,
+    /// A voxel no store serves intact: fail its tiles (the display ends
+    /// the run) or render it as empty.
+    pub corrupt_voxel: dray_config::CorruptVoxel,
 }
 
 /// What a client did, returned when it stops.
@@ -114,6 +117,9 @@ pub struct ClientSummary {
     pub prefetched: u64,
     /// Voxels fetched by the preload, before the first tile.
     pub preloaded: u64,
+    /// Voxels no store served intact (rendered as empty when
+    /// `clients.corrupt_voxel` is "skip").
+    pub voxels_lost: u64,
 }
 
 /// Sends messages in order from a task of their own, so that the actor
@@ -275,6 +281,11 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
         opts.max_inflight_fetches,
         fetches,
         decoded_tx,
+        LostPolicy {
+            mode: opts.corrupt_voxel,
+            report_to: opts.display.clone(),
+            out: results.clone(),
+        },
     );
     let shared = Arc::new(Shared {
         cache: cache.clone(),
@@ -482,6 +493,7 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
     summary.refetched = s.refetched;
     summary.prefetched = s.prefetched;
     summary.preloaded = s.preloaded;
+    summary.voxels_lost = s.lost;
     summary.evicted = cache.evicted();
     summary.peak_cache_bytes = cache.peak_bytes();
     info!(%actor, ?summary, retries = s.retries, "client stopped");
@@ -530,7 +542,9 @@ fn finish_tile(
                 rays,
                 time_us: job.assigned.elapsed().as_micros() as u64,
                 voxels_touched: st.voxels_touched,
-                misses: st.misses.min(u64::from(u32::MAX)) as u32,
+                // Voxels, not packets: the display's hit rate divides
+                // this by `voxels_touched`.
+                misses: st.voxels_missed,
                 bytes_fetched: fetched.compressed,
                 bytes_raw: fetched.raw,
                 stall_us: stall.as_micros() as u64,

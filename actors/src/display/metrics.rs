@@ -223,6 +223,9 @@ pub struct DisplaySummary {
     pub missing_pixels: u64,
     /// Bytes each link class carried, summed over the frames.
     pub total_link: LinkBytes,
+    /// Voxels no store served intact, rendered as empty
+    /// (`clients.corrupt_voxel = "skip"`).
+    pub voxels_missing: std::collections::BTreeSet<u32>,
 }
 
 impl DisplaySummary {
@@ -252,7 +255,13 @@ impl DisplaySummary {
             duplicate_tiles: 0,
             missing_pixels: 0,
             total_link: LinkBytes::default(),
+            voxels_missing: Default::default(),
         }
+    }
+
+    /// Counts voxel `id` as rendered empty; whether it is new.
+    pub(crate) fn voxel_missing(&mut self, id: u32) -> bool {
+        self.voxels_missing.insert(id)
     }
 
     /// Adds a shown frame's metrics.
@@ -328,6 +337,14 @@ impl DisplaySummary {
                 self.tiles_ignored, self.missing_pixels
             );
         }
+        if !self.voxels_missing.is_empty() {
+            let ids: Vec<String> = self.voxels_missing.iter().map(u32::to_string).collect();
+            s += &format!(
+                "voxels missing (no store served them intact; rendered as empty): {} (ids {})\n",
+                self.voxels_missing.len(),
+                ids.join(", ")
+            );
+        }
         if let Some(why) = &self.stopped_early {
             s += &format!("stopped early: {why}\n");
         }
@@ -362,6 +379,7 @@ impl DisplaySummary {
             "duplicate_tiles": self.duplicate_tiles,
             "missing_pixels": self.missing_pixels,
             "total_link": self.total_link,
+            "voxels_missing": self.voxels_missing,
             "frames": self.frames,
         })
     }

@@ -23,12 +23,16 @@
 //!
 //! Bad input never stops the display: tiles for frames that are not
 //! outstanding, outside the image or of inconsistent sizes are ignored
-//! with a warning and counted. Memory holds only the outstanding frames
+//! with a warning and counted. A voxel that no store serves intact
+//! ([`VoxelLost`]) ends the run with an error naming it, unless the
+//! clients render it as empty (`clients.corrupt_voxel = "skip"`): then it
+//! is logged once and counted in the summary. Memory holds only the outstanding frames
 //! (and the shown images when `keep_frames`).
 //!
 //! [`CameraUpdate`]: dray_protocol::CameraUpdate
 //! [`TileDone`]: dray_protocol::TileDone
 //! [`FrameDone`]: dray_protocol::FrameDone
+//! [`VoxelLost`]: dray_protocol::VoxelLost
 
 mod frames;
 mod metrics;
@@ -327,27 +331,35 @@ impl Display {
         Ok(())
     }
 
-    /// Shows every frame that is ready, in order.
-    async fn show_ready(&mut self) -> Result<(), ActorError> {
+    /// Shows every frame that is ready, in order, after `first` if given.
+    async fn show_ready(&mut self, first: Option<ReadyFrame>) -> Result<(), ActorError> {
+        let mut group: Vec<ReadyFrame> = first.into_iter().collect();
         while let Some(ready) = self.frames.pop_ready() {
-            self.show(ready).await?;
+            group.push(ready);
+        }
+        let Some(latest) = group.iter().map(|r| r.completed_at).max() else {
+            return Ok(());
+        };
+        // Shown when complete, but never before the frame before it; frames
+        // shown together share the time since the last one shown.
+        let since = self.last_shown.or(self.started).unwrap_or(latest);
+        let shown = latest.max(since);
+        let frame_ms = (shown - since).as_secs_f64() * 1e3 / group.len() as f64;
+        self.last_shown = Some(shown);
+        for ready in group {
+            self.show(ready, frame_ms).await?;
         }
         Ok(())
     }
 
-    async fn show(&mut self, ready: ReadyFrame) -> Result<(), ActorError> {
+    async fn show(&mut self, ready: ReadyFrame, frame_ms: f64) -> Result<(), ActorError> {
         let ReadyFrame {
             image,
             mut stats,
-            completed_at,
             missing_pixels,
+            ..
         } = ready;
         stats.link.display = self.links.take().display;
-        // Shown when complete, but never before the frame before it.
-        let since = self.last_shown.or(self.started).unwrap_or(completed_at);
-        let shown = completed_at.max(since);
-        let frame_ms = (shown - since).as_secs_f64() * 1e3;
-        self.last_shown = Some(shown);
         let m = FrameMetrics::compute(image.frame, &stats, frame_ms);
         if missing_pixels > 0 {
             warn!(
@@ -604,8 +616,7 @@ pub async fn run_display_with_viewer(
                 let now = Instant::now();
                 if stuck.is_some_and(|t| t <= now) {
                     if let Some(ready) = d.frames.force_next(now) {
-                        d.show(ready).await?;
-                        d.show_ready().await?;
+                        d.show_ready(Some(ready)).await?;
                     }
                 }
                 d.send_cameras(&mb).await?;
@@ -648,6 +659,22 @@ pub async fn run_display_with_viewer(
                         warn!(from = %from, frame = f.frame, "FrameDone for a frame not outstanding ignored");
                     }
                 }
+                Message::VoxelLost(l) if l.skipped => {
+                    if d.summary.voxel_missing(l.id) {
+                        warn!(voxel = l.id, store = %l.store, client = %from.node, reason = %l.reason,
+                            "no store serves this voxel intact: the frames show it as empty");
+                    }
+                }
+                Message::VoxelLost(l) => {
+                    d.flush().await;
+                    return Err(ActorError::Peer {
+                        actor: ACTOR.into(),
+                        message: format!(
+                            "voxel {} cannot be served intact by {}: {} (reported by {}); the frames cannot complete (clients.corrupt_voxel = \"skip\" renders them without it)",
+                            l.id, l.store, l.reason, from.node
+                        ),
+                    });
+                }
                 Message::Shutdown(s) => {
                     info!("shutdown: {}", s.reason);
                     d.flush().await;
@@ -665,7 +692,7 @@ pub async fn run_display_with_viewer(
             }
             Some(Delivery::PeerUp { node, .. }) => debug!("{node} is up"),
         }
-        d.show_ready().await?;
+        d.show_ready(None).await?;
         d.send_cameras(&mb).await?;
     }
     if let Some(out) = &mut d.output {

@@ -207,14 +207,18 @@ impl CameraPath {
         })
     }
 
+    /// Checks a path's number of frames (a file's `frames`, or the
+    /// `--frames` of `dray walkthrough`).
+    pub fn check_frames(frames: u32) -> Result<(), String> {
+        if frames == 0 || frames > MAX_FRAMES {
+            return Err(format!("{frames} is not in 1..={MAX_FRAMES}"));
+        }
+        Ok(())
+    }
+
     /// A path from keyframes, checked: an error is `(key, message)`.
     pub fn new(frames: u32, keyframes: Vec<Keyframe>) -> Result<CameraPath, (String, String)> {
-        if frames == 0 || frames > MAX_FRAMES {
-            return Err((
-                "frames".into(),
-                format!("{frames} is not in 1..={MAX_FRAMES}"),
-            ));
-        }
+        CameraPath::check_frames(frames).map_err(|m| ("frames".to_string(), m))?;
         if keyframes.len() < 2 {
             return Err((
                 "keyframe".into(),

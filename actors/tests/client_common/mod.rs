@@ -157,6 +157,9 @@ pub struct Assembled {
     pub max_outstanding: usize,
     /// Tiles the client asked for in all.
     pub requested: usize,
+    /// The tiles' misses and voxels touched, summed.
+    pub misses: u64,
+    pub touched: u64,
 }
 
 /// Hands out every 16×16 tile of a 96×64 frame on demand (as many as the
@@ -199,6 +202,8 @@ pub async fn render_frame(
         primid: vec![0xdead_beef; n],
         max_outstanding: 0,
         requested: 0,
+        misses: 0,
+        touched: 0,
     };
     // Asked for, handed out so far, and asked for but not yet allowed.
     let (mut granted, mut pending) = (0usize, 0usize);
@@ -261,6 +266,11 @@ pub async fn render_frame(
                 Message::TileDone(t) => {
                     assert_eq!(t.frame, 7);
                     assert!(t.stats.rays >= (TILE * TILE) as u64);
+                    // Misses count voxels, as voxels_touched does: the
+                    // hit rate 1 - misses / touched is a rate.
+                    assert!(t.stats.misses <= t.stats.voxels_touched, "{:?}", t.stats);
+                    out.misses += u64::from(t.stats.misses);
+                    out.touched += u64::from(t.stats.voxels_touched);
                     hit_samples += t.hits.as_slice().len();
                     outstanding -= 1;
                     done += 1;

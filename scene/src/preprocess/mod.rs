@@ -226,7 +226,8 @@ pub fn preprocess(
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_else(|| "db".into());
-    let prefix = format!(".{name}.building-");
+    remove_stale_builds(&parent);
+    let prefix = building_prefix(&name, std::process::id());
     let mut builder = tempfile::Builder::new();
     builder.prefix(&prefix);
     // Becomes the database: an ordinary directory, not tempfile's 0700.
@@ -365,6 +366,78 @@ pub fn preprocess(
         seconds: start.elapsed().as_secs_f64(),
         import_seconds,
     })
+}
+
+/// This machine's name, as the kernel has it ("" where unknown).
+fn host_name() -> String {
+    std::fs::read_to_string("/proc/sys/kernel/hostname")
+        .map(|h| h.trim().to_string())
+        .unwrap_or_default()
+}
+
+/// The start of the hidden folder in which process `pid` of this machine
+/// builds database `name`: `.NAME.building-HOST.PID-` (tempfile adds a
+/// random tag), so a later run can tell whether its builder still lives.
+pub fn building_prefix(name: &str, pid: u32) -> String {
+    format!(".{name}.building-{}.{pid}-", host_name())
+}
+
+/// The builder of a hidden build folder's name (host, pid), if it is one.
+fn building_owner(file_name: &str) -> Option<(&str, u32)> {
+    let rest = file_name.strip_prefix('.')?;
+    let (_, rest) = rest.split_once(".building-")?;
+    let (owner, _tag) = rest.rsplit_once('-')?;
+    let (host, pid) = owner.rsplit_once('.')?;
+    Some((host, pid.parse().ok()?))
+}
+
+/// Whether process `pid` of this machine runs (a zombie does not); where
+/// that cannot be known, it is taken to run.
+fn process_runs(pid: u32) -> bool {
+    if !cfg!(target_os = "linux") {
+        return true;
+    }
+    match std::fs::read_to_string(format!("/proc/{pid}/stat")) {
+        // The state follows the command name in parentheses.
+        Ok(stat) => !matches!(
+            stat.rsplit_once(") "),
+            Some((_, rest)) if rest.starts_with(['Z', 'X'])
+        ),
+        Err(_) => false,
+    }
+}
+
+/// Removes the build folders in `parent` whose builder on this machine is
+/// gone (a killed run's); a live run's, another machine's and those that
+/// name no builder are left alone.
+fn remove_stale_builds(parent: &Path) {
+    let Ok(entries) = std::fs::read_dir(parent) else {
+        return;
+    };
+    let host = host_name();
+    for entry in entries.flatten() {
+        let file_name = entry.file_name();
+        let Some(name) = file_name.to_str() else {
+            continue;
+        };
+        if !name.starts_with('.') || !name.contains(".building-") {
+            continue;
+        }
+        let path = entry.path();
+        match building_owner(name) {
+            Some((h, pid)) if h == host && !process_runs(pid) => {
+                match std::fs::remove_dir_all(&path) {
+                    Ok(()) => tracing::info!(folder = %path.display(), pid,
+                        "removed the build folder of a run that is gone"),
+                    Err(e) => tracing::warn!(folder = %path.display(), error = %e,
+                        "cannot remove the build folder of a run that is gone"),
+                }
+            }
+            Some(_) => {}
+            None => tracing::warn!(folder = %path.display(),
+                "a build folder that names no builder: remove it by hand if no preprocess runs"),
+        }
+    }
 }
 
 fn short_name(path: &Path) -> String {
