@@ -9,11 +9,18 @@
 //! `dray render` and warm cluster clients (`scripts/bench-kernel`,
 //! `experiments/efficiency.toml`).
 //!
-//! Huge pages only where the voxels stay put ([`no_huge_pages`]): a client
-//! that streams voxels into its cache frees and allocates all the time,
-//! and mimalloc hands freed memory back to the kernel, so each fresh fault
-//! would clear a whole 2 MiB page (`clear_page_erms`), making cold
-//! clients slower than with glibc (`experiments/latency-hiding.toml`).
+//! Mimalloc only where the voxels stay put ([`streaming`] switches a
+//! process whose voxels come and go to glibc, without huge pages). A node
+//! that streams voxels allocates a blob in one thread (a store's reader,
+//! the transport, a client's decoder) and frees it in another, all the
+//! time; mimalloc keeps such memory in the allocating thread's pages, and
+//! `dray sim` with 8 clients and 0.5 MB caches grew without bound (1.2 GB
+//! after 5 s, 3.5 GB after 90 s) where glibc stays near 250 MB at the same
+//! speed (`scripts/soak`). With huge pages, each fresh fault would also
+//! clear a whole 2 MiB page (`clear_page_erms`), making cold clients
+//! slower (`experiments/latency-hiding.toml`). The experiment runner stays
+//! on mimalloc without huge pages: its `render` engine must trace as
+//! `dray render` does, and its in-process runs are short.
 //!
 //! Why not mimalloc for preprocessing: its memory budget (`--memory-mb`)
 //! holds for the whole process, and mimalloc's huge pages (committed
@@ -36,6 +43,13 @@ static SYSTEM: AtomicBool = AtomicBool::new(false);
 /// before stay mimalloc's until freed).
 pub fn use_system() {
     SYSTEM.store(true, Ordering::Relaxed);
+}
+
+/// For a process whose voxels come and go (a node that does not preload
+/// them): the system allocator and no huge pages from now on.
+pub fn streaming() {
+    no_huge_pages();
+    use_system();
 }
 
 /// No transparent huge pages for this process from now on (its pages

@@ -650,7 +650,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
             let mut cfg = dray_config::Config::load(&config)?;
             frames_to(&mut cfg, frames);
             if !(role == Role::Client && cfg.clients.preload) {
-                allocator::no_huge_pages();
+                allocator::streaming();
             }
             let opts = RunOptions {
                 isa,
@@ -696,7 +696,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
             let mut cfg = dray_config::Config::load(&config)?;
             frames_to(&mut cfg, frames);
             if !cfg.clients.preload {
-                allocator::no_huge_pages();
+                allocator::streaming();
             }
             let opts = RunOptions {
                 clients,
