@@ -1,5 +1,5 @@
-//! Running one point once, on either engine, and collecting what the
-//! display reports.
+//! Running one point once, on one engine, and collecting what the display
+//! reports (or, for `render`, the same figures of the frames it traced).
 
 use crate::spec::Engine;
 use dray_actors::cluster::RunOptions;

@@ -2,8 +2,9 @@
 //! renderer. An experiment file names a base cluster config, a model, a
 //! camera walk, fixed overrides and a sweep of config keys; every
 //! combination of the swept values (a *point*) is run `repeat` times on
-//! the in-process engine (`dray sim`) or as processes over QUIC
-//! (`dray cluster`), and the results land in one directory: `points.csv`,
+//! the in-process engine (`dray sim`), as processes over QUIC (`dray
+//! cluster`) or, for a baseline, in one process holding the whole model
+//! (`dray render --path`), and the results land in one directory: `points.csv`,
 //! `frames.csv`, a plot per `[[plot]]` (SVG and PNG) and `summary.md`.
 //! The file format, the outputs and the columns are documented in
 //! `docs/experiments.md`.
@@ -15,7 +16,8 @@
 //!   dotted path, validated by `dray_config`, errors naming the key;
 //! * [`points`]: the sweep's combinations;
 //! * `model`: the generated plant (kept in a cache) and the walk;
-//! * `engine`: one run on either engine, and what the display reported;
+//! * `engine`: one run on one engine, and what the display reported (or,
+//!   for `render`, the same figures of the frames it traced);
 //! * [`measure`]: the measured columns, computed from the frames;
 //! * `results`: `points.csv` and `frames.csv`, rows appended whole;
 //! * `resume`: what an earlier results directory already holds;
