@@ -16,7 +16,8 @@
 //! time; mimalloc keeps such memory in the allocating thread's pages, and
 //! `dray sim` with 8 clients and 0.5 MB caches grew without bound (1.2 GB
 //! after 5 s, 3.5 GB after 90 s) where glibc, tuned by [`streaming`],
-//! stays under 200 MB at the same speed (`scripts/soak`). With huge pages, each fresh fault would also
+//! holds about 110-240 MB over 20 minutes at the same speed
+//! (`scripts/soak`). With huge pages, each fresh fault would also
 //! clear a whole 2 MiB page (`clear_page_erms`), making cold clients
 //! slower (`experiments/latency-hiding.toml`). The experiment runner stays
 //! on mimalloc without huge pages: its `render` engine must trace as
