@@ -8,14 +8,6 @@ mod common;
 use common::*;
 use dray_actors::cluster::{frame_cameras, sim, RunOptions};
 
-fn rt() -> tokio::runtime::Runtime {
-    tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .unwrap()
-}
-
 fn check_frames(cfg: &dray_config::Config, clients: u32) {
     let opts = RunOptions {
         clients: Some(clients),

@@ -68,14 +68,6 @@ fn flip_middle_byte(db: &Path, id: u32) {
     f.write_all(&[b[0] ^ 0xff]).unwrap();
 }
 
-fn rt() -> tokio::runtime::Runtime {
-    tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .unwrap()
-}
-
 /// `sim`, which must end: a run that hangs fails the test after a
 /// generous bound instead of hanging it.
 fn sim_to_end(

@@ -244,12 +244,9 @@ impl Inner {
         }
     }
 
-    /// Counts `bytes` of an envelope that arrived from node `from`.
-    pub(crate) fn count_received(&self, from: &Name, bytes: usize) {
-        let role = lock(&self.peers).get(from).map(|(_, r)| *r);
-        if let Some(role) = role {
-            self.traffic.received(role, bytes);
-        }
+    /// Counts `bytes` of an envelope that arrived from a node of `role`.
+    pub(crate) fn count_received(&self, role: Role, bytes: usize) {
+        self.traffic.received(role, bytes);
     }
 
     pub(crate) fn link_id(link: &PeerLink) -> usize {

@@ -46,7 +46,7 @@ impl InProcLink {
             .dst
             .upgrade()
             .ok_or_else(|| SendError::PeerUnavailable(self.dst_name.clone()))?;
-        dst.count_received(&env.from.node, body.len());
+        dst.count_received(self.src_role, body.len());
         let pipe = lock(&self.pipe).clone();
         match pipe {
             None => {

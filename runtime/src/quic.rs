@@ -901,7 +901,7 @@ async fn deliver(
     let Some(bus) = bus.upgrade() else {
         return Ok(());
     };
-    bus.count_received(peer, body.len());
+    bus.count_received(*role, body.len());
     let span =
         tracing::trace_span!("recv", kind = kind.name(), from = %env.from, to = %env.to.actor);
     if let Err(e) = bus.deliver_remote(*role, env).instrument(span).await {

@@ -141,3 +141,12 @@ pub fn reference(cfg: &Config, camera: &Camera) -> (Vec<[u8; 4]>, Vec<f32>, Vec<
     let f = render(&top, &source, &cam, &settings).unwrap();
     (f.rgba, f.depth, f.primid)
 }
+
+/// A two-worker runtime for running clusters in a test.
+pub fn rt() -> tokio::runtime::Runtime {
+    tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .unwrap()
+}
