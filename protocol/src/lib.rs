@@ -35,6 +35,13 @@ use serde::{Deserialize, Serialize};
 /// Identifies one voxel of a database: its index in the manifest.
 pub type VoxelId = u32;
 
+// The version number, written once for both `PROTOCOL_VERSION` and `ALPN`.
+macro_rules! protocol_version {
+    () => {
+        6
+    };
+}
+
 /// Version of the wire protocol; both ends of a connection must agree.
 /// 2: the distributed renderer's messages (manifest, tile reports, frame
 /// start and assignment, tile owners) and the shading render settings;
@@ -43,10 +50,10 @@ pub type VoxelId = u32;
 /// 5: tile and frame statistics carry the voxel bytes after decompression;
 /// 6: a client reports a voxel no store serves intact (`VoxelLost`), and
 /// tile and frame statistics carry the bytes each link class carried.
-pub const PROTOCOL_VERSION: u32 = 6;
+pub const PROTOCOL_VERSION: u32 = protocol_version!();
 
-/// ALPN protocol id spoken over QUIC.
-pub const ALPN: &[u8] = b"dray/6";
+/// ALPN protocol id spoken over QUIC: `dray/` and [`PROTOCOL_VERSION`].
+pub const ALPN: &[u8] = concat!("dray/", protocol_version!()).as_bytes();
 
 /// Largest compressed voxel blob a store may send.
 pub const MAX_VOXEL_BYTES: usize = 64 << 20;

@@ -444,120 +444,96 @@ pub struct TileOwners {
     pub holds_model: BoundedVec<Name, MAX_STATS_CLIENTS>,
 }
 
-/// Every actor message. The variant order is the wire tag: append only.
-/// Who may send which kind to whom: [`MessageKind::may_send`].
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub enum Message {
-    /// Client → scheduler.
-    RequestWork(RequestWork),
-    /// Scheduler → client.
-    AssignTile(AssignTile),
-    /// Client → display (the pixels; the display reports the tile on).
-    TileDone(TileDone),
-    /// Client → store.
-    FetchVoxel(FetchVoxel),
-    /// Store → client.
-    VoxelLoaded(VoxelLoaded),
-    /// Store → client.
-    VoxelError(VoxelError),
-    /// Display → frame assigner, which passes a copy to the prefetcher.
-    CameraUpdate(CameraUpdate),
-    /// Scheduler → display.
-    FrameDone(FrameDone),
-    /// Prefetcher → client.
-    PrefetchHint(PrefetchHint),
-    /// Any → any.
-    Ping(Ping),
-    /// Answer to a ping.
-    Pong(Ping),
-    /// Display's node → scheduler, stores, clients.
-    Shutdown(Shutdown),
-    /// Client or prefetcher → store.
-    FetchManifest(FetchManifest),
-    /// Store → client or prefetcher.
-    ManifestData(ManifestData),
-    /// Display → scheduler, once the tile's pixels are on the display (the
-    /// scheduler also takes a client's report on its own tile).
-    TileReport(TileReport),
-    /// Frame assigner → scheduler.
-    FrameStart(FrameStart),
-    /// Scheduler → frame assigner.
-    FrameAssigned(FrameAssigned),
-    /// Scheduler → prefetcher.
-    TileOwners(TileOwners),
-    /// Client → display.
-    VoxelLost(VoxelLost),
+/// Declares the message set once: each line is a doc, a `Message`
+/// variant with its payload type, and the kind's short name. From it follow
+/// [`Message`], [`MessageKind`] (plus `Handshake`), [`MessageKind::ALL`],
+/// [`Message::kind`] and [`MessageKind::name`]. The line order is the wire
+/// tag: append only.
+macro_rules! message_set {
+    ($($(#[doc = $doc:literal])+ $variant:ident($payload:ty) = $name:literal,)+) => {
+        /// Every actor message. The variant order is the wire tag: append
+        /// only. Who may send which kind to whom: [`MessageKind::may_send`].
+        #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+        pub enum Message {
+            $($(#[doc = $doc])+ $variant($payload),)+
+        }
+
+        /// The kind of a message, without its contents.
+        #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+        pub enum MessageKind {
+            $(#[doc = concat!("[`Message::", stringify!($variant), "`].")] $variant,)+
+            /// Not an actor message: the connection handshake.
+            Handshake,
+        }
+
+        impl MessageKind {
+            /// Every actor message kind, in wire tag order.
+            pub const ALL: [MessageKind; [$(stringify!($variant)),+].len()] =
+                [$(MessageKind::$variant,)+];
+
+            /// A short lowercase name, for logs and spans.
+            pub fn name(self) -> &'static str {
+                match self {
+                    $(MessageKind::$variant => $name,)+
+                    MessageKind::Handshake => "handshake",
+                }
+            }
+        }
+
+        impl Message {
+            /// This message's kind.
+            pub fn kind(&self) -> MessageKind {
+                match self {
+                    $(Message::$variant(_) => MessageKind::$variant,)+
+                }
+            }
+        }
+    };
 }
 
-/// The kind of a message, without its contents.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-pub enum MessageKind {
-    /// [`Message::RequestWork`].
-    RequestWork,
-    /// [`Message::AssignTile`].
-    AssignTile,
-    /// [`Message::TileDone`].
-    TileDone,
-    /// [`Message::FetchVoxel`].
-    FetchVoxel,
-    /// [`Message::VoxelLoaded`].
-    VoxelLoaded,
-    /// [`Message::VoxelError`].
-    VoxelError,
-    /// [`Message::CameraUpdate`].
-    CameraUpdate,
-    /// [`Message::FrameDone`].
-    FrameDone,
-    /// [`Message::PrefetchHint`].
-    PrefetchHint,
-    /// [`Message::Ping`].
-    Ping,
-    /// [`Message::Pong`].
-    Pong,
-    /// [`Message::Shutdown`].
-    Shutdown,
-    /// [`Message::FetchManifest`].
-    FetchManifest,
-    /// [`Message::ManifestData`].
-    ManifestData,
-    /// [`Message::TileReport`].
-    TileReport,
-    /// [`Message::FrameStart`].
-    FrameStart,
-    /// [`Message::FrameAssigned`].
-    FrameAssigned,
-    /// [`Message::TileOwners`].
-    TileOwners,
-    /// [`Message::VoxelLost`].
-    VoxelLost,
-    /// Not an actor message: the connection handshake.
-    Handshake,
+message_set! {
+    /// Client → scheduler.
+    RequestWork(RequestWork) = "request_work",
+    /// Scheduler → client.
+    AssignTile(AssignTile) = "assign_tile",
+    /// Client → display (the pixels; the display reports the tile on).
+    TileDone(TileDone) = "tile_done",
+    /// Client → store.
+    FetchVoxel(FetchVoxel) = "fetch_voxel",
+    /// Store → client.
+    VoxelLoaded(VoxelLoaded) = "voxel_loaded",
+    /// Store → client.
+    VoxelError(VoxelError) = "voxel_error",
+    /// Display → frame assigner, which passes a copy to the prefetcher.
+    CameraUpdate(CameraUpdate) = "camera_update",
+    /// Scheduler → display.
+    FrameDone(FrameDone) = "frame_done",
+    /// Prefetcher → client.
+    PrefetchHint(PrefetchHint) = "prefetch_hint",
+    /// Any → any.
+    Ping(Ping) = "ping",
+    /// Answer to a ping.
+    Pong(Ping) = "pong",
+    /// Display's node → scheduler, stores, clients.
+    Shutdown(Shutdown) = "shutdown",
+    /// Client or prefetcher → store.
+    FetchManifest(FetchManifest) = "fetch_manifest",
+    /// Store → client or prefetcher.
+    ManifestData(ManifestData) = "manifest_data",
+    /// Display → scheduler, once the tile's pixels are on the display (the
+    /// scheduler also takes a client's report on its own tile).
+    TileReport(TileReport) = "tile_report",
+    /// Frame assigner → scheduler.
+    FrameStart(FrameStart) = "frame_start",
+    /// Scheduler → frame assigner.
+    FrameAssigned(FrameAssigned) = "frame_assigned",
+    /// Scheduler → prefetcher.
+    TileOwners(TileOwners) = "tile_owners",
+    /// Client → display.
+    VoxelLost(VoxelLost) = "voxel_lost",
 }
 
 impl MessageKind {
-    /// Every actor message kind, in wire tag order.
-    pub const ALL: [MessageKind; 19] = [
-        MessageKind::RequestWork,
-        MessageKind::AssignTile,
-        MessageKind::TileDone,
-        MessageKind::FetchVoxel,
-        MessageKind::VoxelLoaded,
-        MessageKind::VoxelError,
-        MessageKind::CameraUpdate,
-        MessageKind::FrameDone,
-        MessageKind::PrefetchHint,
-        MessageKind::Ping,
-        MessageKind::Pong,
-        MessageKind::Shutdown,
-        MessageKind::FetchManifest,
-        MessageKind::ManifestData,
-        MessageKind::TileReport,
-        MessageKind::FrameStart,
-        MessageKind::FrameAssigned,
-        MessageKind::TileOwners,
-        MessageKind::VoxelLost,
-    ];
-
     /// The kind whose wire tag (first body byte) is `tag`.
     pub fn from_tag(tag: u8) -> Option<MessageKind> {
         MessageKind::ALL.get(tag as usize).copied()
@@ -713,32 +689,6 @@ impl MessageKind {
             parts.join("; ")
         }
     }
-
-    /// A short lowercase name, for logs and spans.
-    pub fn name(self) -> &'static str {
-        match self {
-            MessageKind::RequestWork => "request_work",
-            MessageKind::AssignTile => "assign_tile",
-            MessageKind::TileDone => "tile_done",
-            MessageKind::FetchVoxel => "fetch_voxel",
-            MessageKind::VoxelLoaded => "voxel_loaded",
-            MessageKind::VoxelError => "voxel_error",
-            MessageKind::CameraUpdate => "camera_update",
-            MessageKind::FrameDone => "frame_done",
-            MessageKind::PrefetchHint => "prefetch_hint",
-            MessageKind::Ping => "ping",
-            MessageKind::Pong => "pong",
-            MessageKind::Shutdown => "shutdown",
-            MessageKind::FetchManifest => "fetch_manifest",
-            MessageKind::ManifestData => "manifest_data",
-            MessageKind::TileReport => "tile_report",
-            MessageKind::FrameStart => "frame_start",
-            MessageKind::FrameAssigned => "frame_assigned",
-            MessageKind::TileOwners => "tile_owners",
-            MessageKind::VoxelLost => "voxel_lost",
-            MessageKind::Handshake => "handshake",
-        }
-    }
 }
 
 fn finite(v: &[f32]) -> bool {
@@ -855,31 +805,6 @@ fn check_owners(o: &TileOwners) -> Result<(), String> {
 }
 
 impl Message {
-    /// This message's kind.
-    pub fn kind(&self) -> MessageKind {
-        match self {
-            Message::RequestWork(_) => MessageKind::RequestWork,
-            Message::AssignTile(_) => MessageKind::AssignTile,
-            Message::TileDone(_) => MessageKind::TileDone,
-            Message::FetchVoxel(_) => MessageKind::FetchVoxel,
-            Message::VoxelLoaded(_) => MessageKind::VoxelLoaded,
-            Message::VoxelError(_) => MessageKind::VoxelError,
-            Message::CameraUpdate(_) => MessageKind::CameraUpdate,
-            Message::FrameDone(_) => MessageKind::FrameDone,
-            Message::PrefetchHint(_) => MessageKind::PrefetchHint,
-            Message::Ping(_) => MessageKind::Ping,
-            Message::Pong(_) => MessageKind::Pong,
-            Message::Shutdown(_) => MessageKind::Shutdown,
-            Message::FetchManifest(_) => MessageKind::FetchManifest,
-            Message::ManifestData(_) => MessageKind::ManifestData,
-            Message::TileReport(_) => MessageKind::TileReport,
-            Message::FrameStart(_) => MessageKind::FrameStart,
-            Message::FrameAssigned(_) => MessageKind::FrameAssigned,
-            Message::TileOwners(_) => MessageKind::TileOwners,
-            Message::VoxelLost(_) => MessageKind::VoxelLost,
-        }
-    }
-
     /// Bytes of the message's large arrays (pixels, depths, ids, voxel and
     /// manifest data, hits), about its encoded size less a few fields.
     pub fn payload_len(&self) -> usize {

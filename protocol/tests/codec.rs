@@ -395,3 +395,23 @@ fn maximal_messages_fit_their_limits() {
     });
     assert!(encode_envelope(&env(too_many)).is_err());
 }
+
+#[test]
+fn the_alpn_names_the_protocol_version() {
+    assert_eq!(ALPN, format!("dray/{PROTOCOL_VERSION}").as_bytes());
+}
+
+#[test]
+fn each_kind_has_its_own_name_and_its_wire_tag_is_its_place() {
+    let mut names: Vec<&str> = MessageKind::ALL.iter().map(|k| k.name()).collect();
+    assert!(!MessageKind::ALL.contains(&MessageKind::Handshake));
+    for (tag, kind) in MessageKind::ALL.into_iter().enumerate() {
+        assert_eq!(MessageKind::from_tag(tag as u8), Some(kind));
+    }
+    assert_eq!(MessageKind::from_tag(MessageKind::ALL.len() as u8), None);
+    names.push(MessageKind::Handshake.name());
+    let n = names.len();
+    names.sort_unstable();
+    names.dedup();
+    assert_eq!(names.len(), n, "two kinds share a name");
+}

@@ -324,7 +324,7 @@ impl NodeIdentity {
         Ok(Arc::new(roots))
     }
 
-    /// rustls server configuration: TLS 1.3, ALPN `dray/6`, client
+    /// rustls server configuration: TLS 1.3, ALPN [`ALPN`], client
     /// certificates required and verified against the trusted CA.
     pub fn server_tls(&self) -> Result<rustls::ServerConfig, CertError> {
         let provider = Arc::new(rustls::crypto::ring::default_provider());
@@ -338,7 +338,7 @@ impl NodeIdentity {
         Ok(cfg)
     }
 
-    /// rustls client configuration: TLS 1.3, ALPN `dray/6`, the server
+    /// rustls client configuration: TLS 1.3, ALPN [`ALPN`], the server
     /// verified against the trusted CA, our certificate presented.
     pub fn client_tls(&self) -> Result<rustls::ClientConfig, CertError> {
         let provider = Arc::new(rustls::crypto::ring::default_provider());
