@@ -11,9 +11,6 @@ use dray_protocol::{
 };
 use dray_runtime::{InProcNet, Mailbox};
 use dray_scene::db::manifest::{Manifest, MANIFEST_FILE};
-use dray_scene::generate::{generate_plant, PlantParams};
-use dray_scene::preprocess::{preprocess, PreprocessOptions};
-use dray_scene::progress::Progress;
 use dray_scene::Ray;
 use glam::Vec3;
 use std::collections::HashSet;
@@ -30,28 +27,9 @@ fn name(s: &str) -> Name {
 
 /// A plant preprocessed into a temporary database: the manifest's bytes.
 fn database() -> (tempfile::TempDir, Vec<u8>) {
-    let dir = tempfile::tempdir().unwrap();
-    let model = dir.path().join("plant.ply");
-    generate_plant(
-        &PlantParams {
-            triangles: 20_000,
-            seed: 3,
-        },
-        &model,
-        &mut |_| {},
-    )
-    .unwrap();
-    let db = dir.path().join("db");
-    preprocess(
-        &PreprocessOptions {
-            max_triangles: 256,
-            ..PreprocessOptions::new(vec![model], db.clone())
-        },
-        &Progress::hidden(),
-    )
-    .unwrap();
-    let bytes = std::fs::read(db.join(MANIFEST_FILE)).unwrap();
-    (dir, bytes)
+    let t = dray_testkit::plant_db(20_000, 3, 256);
+    let bytes = std::fs::read(t.path.join(MANIFEST_FILE)).unwrap();
+    (t.dir, bytes)
 }
 
 /// Left half of the tiles to client 0, right half to client 1, the top

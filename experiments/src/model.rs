@@ -7,8 +7,8 @@ use crate::results::write_atomic;
 use crate::spec::{Model, Route, Walk};
 use dray_actors::display::CameraPath;
 use dray_scene::db::Database;
-use dray_scene::generate::{generate_plant, PlantParams};
-use dray_scene::preprocess::{preprocess, PreprocessOptions};
+use dray_scene::generate::PlantParams;
+use dray_scene::preprocess::{plant_database, PreprocessOptions};
 use dray_scene::progress::Progress;
 use std::path::{Path, PathBuf};
 
@@ -35,17 +35,10 @@ pub(crate) fn prepare(model: &Model, cache: &Path) -> Result<PathBuf, Experiment
     };
     std::fs::create_dir_all(cache).map_err(|e| fail(&e))?;
     let ply = db.with_extension("ply");
-    let progress = Progress::auto();
-    progress.stage("generating plant", triangles);
-    let mut last = 0;
-    generate_plant(&PlantParams { triangles, seed }, &ply, &mut |done| {
-        progress.advance(done - last);
-        last = done;
-    })
-    .map_err(|e| fail(&e))?;
-    progress.finish();
-    let built = preprocess(
-        &PreprocessOptions::new(vec![ply.clone()], db.clone()),
+    let built = plant_database(
+        &PlantParams { triangles, seed },
+        &ply,
+        &PreprocessOptions::new(Vec::new(), db.clone()),
         &Progress::auto(),
     );
     // The PLY is only the preprocessor's input: the database is what is kept.

@@ -7,34 +7,17 @@ use dray_actors::settings::{kernel_camera, kernel_settings, wire_settings};
 use dray_config::Config;
 use dray_protocol::Camera;
 use dray_scene::db::Database;
-use dray_scene::generate::{generate_plant, suggested_views, PlantParams};
-use dray_scene::preprocess::{preprocess, PreprocessOptions};
-use dray_scene::progress::Progress;
+use dray_scene::generate::suggested_views;
 use dray_trace::render::{render, Isa};
 use dray_trace::scene::{ResidentSource, TopLevel};
 use std::path::{Path, PathBuf};
 
+pub use dray_testkit::free_ports;
+
 /// A plant of `triangles` in `dir/plant.vdb`, with small voxels so that a
 /// small image touches many of them.
 pub fn plant_db(dir: &Path, triangles: u64) -> PathBuf {
-    let model = dir.join("plant.ply");
-    generate_plant(&PlantParams { triangles, seed: 3 }, &model, &mut |_| {}).unwrap();
-    let db = dir.join("plant.vdb");
-    let mut opts = PreprocessOptions::new(vec![model], db.clone());
-    opts.max_triangles = 256;
-    opts.threads = 2;
-    preprocess(&opts, &Progress::hidden()).unwrap();
-    db
-}
-
-/// `N` distinct free UDP ports on 127.0.0.1 (QUIC listens on UDP). The
-/// sockets are held until all are chosen: binding and dropping one at a
-/// time can hand out the same port twice.
-pub fn free_ports<const N: usize>() -> [u16; N] {
-    let sockets: Vec<std::net::UdpSocket> = (0..N)
-        .map(|_| std::net::UdpSocket::bind("127.0.0.1:0").unwrap())
-        .collect();
-    std::array::from_fn(|i| sockets[i].local_addr().unwrap().port())
+    dray_testkit::plant_db_in(dir, triangles, 3, 256)
 }
 
 /// A walkthrough of `frames` cameras from outside the model to inside.

@@ -1,9 +1,6 @@
 //! Latency hiding on tokio's paused clock: a tile whose packets need 16
 //! different missing voxels, each delivered 50 ms after its request.
 
-use dray_scene::db::Database;
-use dray_scene::preprocess::{preprocess, PreprocessOptions};
-use dray_scene::progress::Progress;
 use dray_trace::camera::Camera;
 use dray_trace::render::Isa;
 use dray_trace::render::RenderSettings;
@@ -89,16 +86,7 @@ fn scene() -> (tempfile::TempDir, Camera, TopLevel, ResidentSource) {
         }
     }
     drop(obj);
-    let db_path = dir.path().join("db");
-    preprocess(
-        &PreprocessOptions {
-            max_triangles: 2,
-            ..PreprocessOptions::new(vec![path], db_path.clone())
-        },
-        &Progress::hidden(),
-    )
-    .unwrap();
-    let db = Database::open(&db_path).unwrap();
+    let db = dray_testkit::preprocess_into(&path, &dir.path().join("db"), 2);
     assert_eq!(db.manifest.voxels.len(), 16, "one voxel per square");
     let top = TopLevel::from_manifest(&db.manifest);
     let all = ResidentSource::load(&db).unwrap();

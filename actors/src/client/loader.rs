@@ -699,10 +699,6 @@ impl Loader {
 mod tests {
     use super::*;
     use crate::Shard;
-    use dray_scene::db::Database;
-    use dray_scene::generate::{generate_plant, PlantParams};
-    use dray_scene::preprocess::{preprocess, PreprocessOptions};
-    use dray_scene::progress::Progress;
 
     fn fetched(out: &mut mpsc::UnboundedReceiver<(Address, Message)>) -> Vec<u32> {
         std::iter::from_fn(|| out.try_recv().ok())
@@ -715,24 +711,8 @@ mod tests {
 
     #[tokio::test]
     async fn a_voxel_being_decoded_keeps_its_fetch_slot() {
-        let dir = tempfile::tempdir().unwrap();
-        let model = dir.path().join("plant.ply");
-        generate_plant(
-            &PlantParams {
-                triangles: 20_000,
-                seed: 3,
-            },
-            &model,
-            &mut |_| {},
-        )
-        .unwrap();
-        let path = dir.path().join("db");
-        let opts = PreprocessOptions {
-            max_triangles: 512,
-            ..PreprocessOptions::new(vec![model], path.clone())
-        };
-        preprocess(&opts, &Progress::hidden()).unwrap();
-        let db = Database::open(&path).unwrap();
+        let t = dray_testkit::plant_db(20_000, 3, 512);
+        let db = &t.db;
         assert!(db.manifest.voxels.len() >= 2);
         let manifest = Arc::new(db.manifest.clone());
         let cache = Arc::new(VoxelCache::new(manifest.voxels.len(), u64::MAX));

@@ -14,9 +14,6 @@ use dray_protocol::{
 };
 use dray_runtime::{Bus, Delivery, InProcNet, Mailbox, Name, Role};
 use dray_scene::db::Database;
-use dray_scene::generate::{generate_plant, PlantParams};
-use dray_scene::preprocess::{preprocess, PreprocessOptions};
-use dray_scene::progress::Progress;
 use dray_trace::camera::Camera;
 use dray_trace::render::{render, Frame, Isa};
 use dray_trace::scene::{ResidentSource, TopLevel};
@@ -24,33 +21,11 @@ use std::path::PathBuf;
 use std::time::Duration;
 use tokio::task::JoinHandle;
 
-/// A preprocessed plant.
-pub struct Db {
-    pub _dir: tempfile::TempDir,
-    pub path: PathBuf,
-    pub db: Database,
-}
+pub use dray_testkit::TestDb as Db;
 
 /// A plant of `triangles` triangles, at most 512 per voxel.
 pub fn plant_db(triangles: u64) -> Db {
-    let dir = tempfile::tempdir().unwrap();
-    let model = dir.path().join("plant.ply");
-    generate_plant(&PlantParams { triangles, seed: 5 }, &model, &mut |_| {}).unwrap();
-    let path = dir.path().join("db");
-    preprocess(
-        &PreprocessOptions {
-            max_triangles: 512,
-            ..PreprocessOptions::new(vec![model], path.clone())
-        },
-        &Progress::hidden(),
-    )
-    .unwrap();
-    let db = Database::open(&path).unwrap();
-    Db {
-        _dir: dir,
-        path,
-        db,
-    }
+    dray_testkit::plant_db(triangles, 5, 512)
 }
 
 pub fn name(s: &str) -> Name {

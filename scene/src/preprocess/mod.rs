@@ -15,8 +15,11 @@
 //!    looks like a database and never damages an existing one.
 
 mod build;
+mod plant;
 pub mod spill;
 pub mod split;
+
+pub use plant::plant_database;
 
 use crate::db::manifest::{
     BspNode, BuildParams, InputModel, Manifest, VoxelEntry, FORMAT_VERSION, MANIFEST_FILE,
@@ -113,6 +116,9 @@ impl PreprocessOptions {
 pub enum PreprocessError {
     #[error(transparent)]
     Import(#[from] ImportError),
+    /// Generating the plant that [`plant_database`] preprocesses failed.
+    #[error(transparent)]
+    Generate(#[from] crate::generate::GenerateError),
     #[error("{path}: {source}")]
     Io { path: PathBuf, source: io::Error },
     /// Reading or writing the temporary spill files failed (disk full...).

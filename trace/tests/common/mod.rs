@@ -2,15 +2,12 @@
 #![allow(dead_code)]
 
 use dray_scene::db::Database;
-use dray_scene::generate::{generate_plant, PlantParams};
 use dray_scene::import::{import_model, ImportOptions};
-use dray_scene::preprocess::{preprocess, PreprocessOptions};
-use dray_scene::progress::Progress;
 use dray_trace::camera::Camera;
 use dray_trace::render::{Isa, RenderSettings};
 use dray_trace::scene::{ResidentSource, TopLevel};
 use glam::Vec3;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 pub struct Model {
     pub _dir: tempfile::TempDir,
@@ -20,23 +17,13 @@ pub struct Model {
     pub db: Database,
 }
 
-pub fn load(model: &Path, dir: tempfile::TempDir, max_triangles: u32) -> Model {
+fn load(model: &Path, dir: tempfile::TempDir, db: Database) -> Model {
     let mut tris = Vec::new();
     import_model(model, 0, &ImportOptions::default(), &mut |t| {
         tris.push(t.positions);
         Ok(())
     })
     .unwrap();
-    let db_path = dir.path().join("db");
-    preprocess(
-        &PreprocessOptions {
-            max_triangles,
-            ..PreprocessOptions::new(vec![model.to_path_buf()], db_path.clone())
-        },
-        &Progress::hidden(),
-    )
-    .unwrap();
-    let db = Database::open(&db_path).unwrap();
     Model {
         _dir: dir,
         tris,
@@ -47,22 +34,16 @@ pub fn load(model: &Path, dir: tempfile::TempDir, max_triangles: u32) -> Model {
 }
 
 pub fn plant(triangles: u64) -> Model {
-    let dir = tempfile::tempdir().unwrap();
-    let model = dir.path().join("plant.ply");
-    generate_plant(&PlantParams { triangles, seed: 5 }, &model, &mut |_| {}).unwrap();
-    load(&model, dir, 512)
+    let t = dray_testkit::plant_db(triangles, 5, 512);
+    load(&t.model, t.dir, t.db)
 }
 
 /// A real model shipped in `tests/data/` (origins in its `SOURCES.md`).
 pub fn real_model(name: &str) -> Model {
     let dir = tempfile::tempdir().unwrap();
-    let src = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../tests/data")
-        .join(format!("{name}.ply.zst"));
-    let out = dir.path().join(format!("{name}.ply"));
-    let input = std::fs::File::open(&src).unwrap_or_else(|e| panic!("{}: {e}", src.display()));
-    zstd::stream::copy_decode(input, std::fs::File::create(&out).unwrap()).unwrap();
-    load(&out, dir, 2048)
+    let model = dray_testkit::real_model(name, dir.path());
+    let db = dray_testkit::preprocess_into(&model, &dir.path().join("db"), 2048);
+    load(&model, dir, db)
 }
 
 pub fn isas() -> Vec<Isa> {
