@@ -1,11 +1,12 @@
 //! The client's voxel loader: render threads ask for voxels through a
-//! channel (each request with a oneshot for the answer); the loader, run
-//! by the client's actor task, sends one [`FetchVoxel`] per voxel however
-//! many packets wait for it, at most `max_inflight` at once, counting those
-//! still being decoded (the rest queue: packets' requests first, then a
-//! preload of the whole model if asked for, hints last), decodes and verifies
-//! what comes back on tokio's blocking pool, puts it in the cache and
-//! answers every waiter.
+//! channel (each request with a oneshot for the answer); the loader, part
+//! of the client's state, asks for one fetch per voxel however many packets
+//! wait for it, at most `max_inflight` at once, counting those still being
+//! decoded (the rest queue: packets' requests first, then a preload of the
+//! whole model if asked for, hints last), has what comes back verified and
+//! decoded on tokio's blocking pool, puts it in the cache and answers every
+//! waiter. Fetches, decodes and reports are effects ([`Out`]) that the
+//! client's run loop carries out.
 //!
 //! Faults: a blob that fails its checksum (or does not decode) is logged
 //! and fetched again; a [`VoxelError`] is retried after a short delay,
@@ -21,9 +22,10 @@
 //! is dropped.
 
 use super::cache::VoxelCache;
+use super::state::Out;
 use crate::names::StoreRoutes;
 use dray_config::CorruptVoxel;
-use dray_protocol::{Address, FetchVoxel, Message, Name, VoxelError, VoxelLost};
+use dray_protocol::{Address, Message, Name, VoxelError, VoxelLost};
 use dray_scene::db::manifest::{Manifest, VoxelEntry};
 use dray_scene::geometry::Aabb;
 use dray_scene::voxel::Voxel;
@@ -131,10 +133,8 @@ pub(crate) struct Decoded {
 pub(crate) struct LostPolicy {
     /// Fail the requests (the run ends) or answer them with an empty voxel.
     pub mode: CorruptVoxel,
-    /// Where [`VoxelLost`] goes (the display).
+    /// Where [`VoxelLost`] goes (the display), as a control message.
     pub report_to: Address,
-    /// The queue it is sent by (control messages, in order).
-    pub out: mpsc::UnboundedSender<(Address, Message)>,
 }
 
 /// A voxel no store served intact: why, and in skip mode what stands in
@@ -145,7 +145,7 @@ struct Lost {
 }
 
 /// A voxel with no triangles in `bounds`: what a lost voxel renders as.
-fn empty_voxel(id: u32, bounds: Aabb) -> PreparedVoxel {
+pub(super) fn empty_voxel(id: u32, bounds: Aabb) -> PreparedVoxel {
     PreparedVoxel::new(
         id,
         &Voxel {
@@ -234,9 +234,6 @@ pub(crate) struct Loader {
     /// Decoded bytes (the manifest's sizes) of the preloads sent so far.
     preload_planned: u64,
     ever_loaded: Vec<bool>,
-    /// Where FetchVoxel messages go out (a task that sends them in order).
-    out: mpsc::UnboundedSender<(Address, Message)>,
-    decoded: mpsc::UnboundedSender<Decoded>,
     pub stats: LoaderStats,
     /// Bytes fetched that no tile has been charged with yet.
     unattributed: Fetched,
@@ -256,8 +253,6 @@ impl Loader {
         cache: Arc<VoxelCache>,
         routes: StoreRoutes,
         max_inflight: usize,
-        out: mpsc::UnboundedSender<(Address, Message)>,
-        decoded: mpsc::UnboundedSender<Decoded>,
         policy: LostPolicy,
     ) -> Loader {
         let n = manifest.voxels.len();
@@ -273,8 +268,6 @@ impl Loader {
             preload: VecDeque::new(),
             preload_planned: 0,
             ever_loaded: vec![false; n],
-            out,
-            decoded,
             stats: LoaderStats::default(),
             unattributed: Fetched::default(),
             policy,
@@ -302,7 +295,7 @@ impl Loader {
     }
 
     /// A render thread asks for a voxel.
-    pub fn request(&mut self, req: LoadRequest) {
+    pub fn request(&mut self, req: LoadRequest, out: &mut Vec<Out>) {
         let id = req.id;
         if let Some(v) = self.cache.get(id) {
             let _ = req.reply.send(Ok((v, Fetched::default())));
@@ -341,12 +334,12 @@ impl Loader {
                 self.queue.push_back(id);
             }
         }
-        self.pump();
+        self.pump(out);
     }
 
     /// The prefetcher hints at voxels needed soon: the newest hint
     /// replaces older ones.
-    pub fn hint(&mut self, ids: &[u32]) {
+    pub fn hint(&mut self, ids: &[u32], out: &mut Vec<Out>) {
         self.hints.clear();
         let n = self.manifest.voxels.len();
         for &id in ids.iter().take(MAX_PREFETCH_QUEUE) {
@@ -358,17 +351,17 @@ impl Loader {
                 self.hints.push_back(id);
             }
         }
-        self.pump();
+        self.pump(out);
     }
 
     /// Fetches every voxel of the model, in id order, while the cache has
     /// room for it (by the manifest's decoded sizes, and by what the cache
     /// holds): warm caches before the first tile, for a model that fits.
     /// Requests from packets go first.
-    pub fn preload(&mut self) {
+    pub fn preload(&mut self, out: &mut Vec<Out>) {
         self.preload = (0..self.manifest.voxels.len() as u32).collect();
         self.preload_planned = 0;
-        self.pump();
+        self.pump(out);
     }
 
     /// Whether a preload is still going on (queued, in flight or being
@@ -410,11 +403,11 @@ impl Loader {
 
     /// Sends queued fetches while slots are free: requests first, then
     /// the preload, hints when nothing else waits.
-    fn pump(&mut self) {
+    fn pump(&mut self, out: &mut Vec<Out>) {
         while self.inflight < self.max_inflight {
             if let Some(id) = self.queue.pop_front() {
                 if matches!(self.pending.get(&id), Some(p) if matches!(p.state, State::Queued)) {
-                    self.send(id);
+                    self.send(id, out);
                 }
                 continue;
             }
@@ -441,11 +434,11 @@ impl Loader {
                     prefetch: true,
                 },
             );
-            self.send(id);
+            self.send(id, out);
         }
     }
 
-    fn send(&mut self, id: u32) {
+    fn send(&mut self, id: u32, out: &mut Vec<Out>) {
         if let Some(p) = self.pending.get_mut(&id) {
             let store = self.routes.store_for(id, p.sends).clone();
             p.sends = p.sends.wrapping_add(1);
@@ -456,9 +449,7 @@ impl Loader {
                 store: store.clone(),
                 sent: Instant::now(),
             };
-            let _ = self
-                .out
-                .send((store, Message::FetchVoxel(FetchVoxel { id })));
+            out.push(Out::Fetch { to: store, id });
         }
     }
 
@@ -470,8 +461,8 @@ impl Loader {
         }
     }
 
-    /// A store sent a blob.
-    pub fn loaded(&mut self, from: Address, id: u32, blob: Vec<u8>) {
+    /// A store sent a blob: it is decoded off the actor task.
+    pub fn loaded(&mut self, from: Address, id: u32, blob: Vec<u8>, out: &mut Vec<Out>) {
         let Some(p) = self.pending.get(&id) else {
             debug!(voxel = id, %from, "voxel nobody waits for (a duplicate)");
             return;
@@ -489,22 +480,17 @@ impl Loader {
             }
             p.state = State::Decoding;
         }
-        let entry = self.manifest.voxels[id as usize];
-        let tx = self.decoded.clone();
-        tokio::task::spawn_blocking(move || {
-            let result = decode(id, &entry, &blob);
-            let _ = tx.send(Decoded {
-                id,
-                store: from,
-                bytes: blob.len() as u64,
-                result,
-            });
+        out.push(Out::Decode {
+            id,
+            store: from,
+            entry: self.manifest.voxels[id as usize],
+            blob,
         });
-        self.pump();
+        self.pump(out);
     }
 
     /// The blocking pool finished a voxel.
-    pub fn decoded(&mut self, d: Decoded) {
+    pub fn decoded(&mut self, d: Decoded, out: &mut Vec<Out>) {
         let Some(mut p) = self.pending.remove(&d.id) else {
             return;
         };
@@ -545,7 +531,7 @@ impl Loader {
                     "voxel failed verification; fetching it again");
                 if p.failures >= self.tries(d.id) {
                     let why = format!("{why} ({} tries)", p.failures);
-                    self.lose(d.id, p, &d.store, why);
+                    self.lose(d.id, p, &d.store, why, out);
                 } else {
                     self.stats.retries += 1;
                     p.state = State::Queued;
@@ -554,11 +540,11 @@ impl Loader {
                 }
             }
         }
-        self.pump();
+        self.pump(out);
     }
 
     /// A store refused a voxel.
-    pub fn refused(&mut self, from: Address, e: VoxelError) {
+    pub fn refused(&mut self, from: Address, e: VoxelError, out: &mut Vec<Out>) {
         let id = e.id;
         match self.pending.get(&id) {
             Some(p) if matches!(p.state, State::InFlight { .. }) => {}
@@ -572,7 +558,7 @@ impl Loader {
         warn!(voxel = id, store = %from, error = %e.message, tries = p.failures, "store refused a voxel");
         if p.failures >= self.tries(id) {
             let why = format!("refused: {} ({} tries)", e.message, p.failures);
-            self.lose(id, p, &from, why);
+            self.lose(id, p, &from, why, out);
         } else if p.prefetch {
             let why = format!("{from} refused it: {}", e.message);
             self.fail(id, p, why);
@@ -581,13 +567,13 @@ impl Loader {
             p.state = State::Retry(Instant::now() + RETRY_DELAY);
             self.pending.insert(id, p);
         }
-        self.pump();
+        self.pump(out);
     }
 
     /// No store serves voxel `id` intact (`store` failed it last, for
     /// `reason`): the display hears of it, and its waiters, like every
     /// later request, get what the policy says.
-    fn lose(&mut self, id: u32, p: Pending, store: &Address, reason: String) {
+    fn lose(&mut self, id: u32, p: Pending, store: &Address, reason: String, out: &mut Vec<Out>) {
         let skip = self.policy.mode == CorruptVoxel::Skip;
         let empty = skip.then(|| {
             let bounds = self.manifest.voxels[id as usize].bounds;
@@ -607,10 +593,7 @@ impl Loader {
             skipped: skip,
         });
         let message = format!("{}: {reason}", store.node);
-        let _ = self
-            .policy
-            .out
-            .send((self.policy.report_to.clone(), report));
+        out.push(Out::Control(self.policy.report_to.clone(), report));
         self.lost.insert(id, Lost { message, empty });
         for w in p.waiters {
             if let Some(answer) = self.lost_answer(id) {
@@ -629,7 +612,7 @@ impl Loader {
     }
 
     /// A store node came (back) up: fetches it never answered go again.
-    pub fn peer_up(&mut self, node: &Name) {
+    pub fn peer_up(&mut self, node: &Name, out: &mut Vec<Out>) {
         let again: Vec<u32> = self
             .pending
             .iter()
@@ -642,12 +625,12 @@ impl Loader {
             debug!(store = %node, fetches = again.len(), "store is back: asking again");
         }
         for id in again {
-            self.send(id);
+            self.send(id, out);
         }
     }
 
     /// Retries whose delay is over, fetches that timed out.
-    pub fn tick(&mut self) {
+    pub fn tick(&mut self, out: &mut Vec<Out>) {
         let now = Instant::now();
         let (mut again, mut dropped) = (Vec::new(), Vec::new());
         for (&id, p) in &mut self.pending {
@@ -678,9 +661,9 @@ impl Loader {
         }
         for id in again {
             self.stats.retries += 1;
-            self.send(id);
+            self.send(id, out);
         }
-        self.pump();
+        self.pump(out);
     }
 
     /// Answers every waiter with an error (the client stops).
@@ -700,17 +683,17 @@ mod tests {
     use super::*;
     use crate::Shard;
 
-    fn fetched(out: &mut mpsc::UnboundedReceiver<(Address, Message)>) -> Vec<u32> {
-        std::iter::from_fn(|| out.try_recv().ok())
-            .map(|(_, m)| match m {
-                Message::FetchVoxel(f) => f.id,
+    fn fetched(out: &mut Vec<Out>) -> Vec<u32> {
+        out.drain(..)
+            .map(|o| match o {
+                Out::Fetch { id, .. } => id,
                 other => panic!("unexpected {other:?}"),
             })
             .collect()
     }
 
-    #[tokio::test]
-    async fn a_voxel_being_decoded_keeps_its_fetch_slot() {
+    #[test]
+    fn a_voxel_being_decoded_keeps_its_fetch_slot() {
         let t = dray_testkit::plant_db(20_000, 3, 512);
         let db = &t.db;
         assert!(db.manifest.voxels.len() >= 2);
@@ -718,24 +701,42 @@ mod tests {
         let cache = Arc::new(VoxelCache::new(manifest.voxels.len(), u64::MAX));
         let store = crate::names::store(0);
         let routes = StoreRoutes::new(vec![(Shard::ALL, store.clone())]).unwrap();
-        let (out_tx, mut out) = mpsc::unbounded_channel();
-        let (decoded_tx, mut decoded) = mpsc::unbounded_channel();
-        let (report_tx, _reports) = mpsc::unbounded_channel();
         let policy = LostPolicy {
             mode: CorruptVoxel::Fail,
             report_to: crate::names::display(),
-            out: report_tx,
         };
-        let mut loader = Loader::new(manifest, cache, routes, 1, out_tx, decoded_tx, policy);
+        let mut loader = Loader::new(manifest, cache, routes, 1, policy);
+        let mut out = Vec::new();
         let (reply, mut answer) = oneshot::channel();
-        loader.request(LoadRequest { id: 0, reply });
+        loader.request(LoadRequest { id: 0, reply }, &mut out);
         let (reply, _answer1) = oneshot::channel();
-        loader.request(LoadRequest { id: 1, reply });
+        loader.request(LoadRequest { id: 1, reply }, &mut out);
         assert_eq!(fetched(&mut out), [0], "one slot: one fetch");
-        loader.loaded(store.clone(), 0, db.read_blob(0).unwrap());
-        assert_eq!(fetched(&mut out), [0u32; 0], "sent while voxel 0 decodes");
-        let d = decoded.recv().await.unwrap();
-        loader.decoded(d);
+        loader.loaded(store.clone(), 0, db.read_blob(0).unwrap(), &mut out);
+        let Some(Out::Decode {
+            id,
+            store,
+            entry,
+            blob,
+        }) = out.pop()
+        else {
+            panic!("no decode: {out:?}");
+        };
+        assert!(
+            out.is_empty(),
+            "nothing sent while voxel 0 decodes: {out:?}"
+        );
+        let result = decode(id, &entry, &blob);
+        let bytes = blob.len() as u64;
+        loader.decoded(
+            Decoded {
+                id,
+                store,
+                bytes,
+                result,
+            },
+            &mut out,
+        );
         assert!(matches!(answer.try_recv(), Ok(Ok(_))));
         assert_eq!(fetched(&mut out), [1], "the slot is free once decoded");
     }

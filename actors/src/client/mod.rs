@@ -15,30 +15,35 @@
 //! The actor task itself only does bookkeeping: messages go out through
 //! sender tasks, blobs are decoded on tokio's blocking pool, and tracing
 //! runs on the render threads, so the mailbox is always served promptly.
+//!
+//! Shape: once it has the manifest and the scheduler is connected,
+//! `state::Client` owns the client's state (the loader, the tiles held
+//! and asked for, the batch); its handlers (a tile assigned, a voxel wanted,
+//! arrived, decoded or refused, a hint, a ping, a peer up or down, tiles
+//! finished, the retry tick) push effects (`state::Out`: send a message on
+//! one of the ordered queues, fetch a voxel, decode a blob, hand a thread a
+//! tile, resize the threads' groups); [`run_client`] receives, calls the
+//! handler and carries the effects out.
 
 mod ahead;
 mod batch;
 pub mod cache;
 mod loader;
+mod state;
 mod worker;
 
 pub use loader::{FETCH_TIMEOUT, MAX_TRIES, RETRY_DELAY};
 
 use crate::names::StoreRoutes;
-use crate::settings::{kernel_camera, kernel_settings};
 use crate::ActorError;
-use ahead::{Ahead, RoundTrips};
-use batch::TileBatch;
 use cache::VoxelCache;
-use dray_protocol::{
-    Address, AssignTile, BoundedVec, Compression, FetchManifest, Message, PackedF32, PackedU32,
-    RequestWork, TileDone, TilePixels, TileStats, MAX_REPORT_HITS,
-};
+use dray_protocol::{Address, Compression, FetchManifest, FetchVoxel, Message, MAX_REPORT_HITS};
 use dray_runtime::{ActorRef, Delivery, LinkMeter, Mailbox};
 use dray_scene::db::manifest::Manifest;
 use dray_trace::scene::TopLevel;
 use dray_trace::tile::MissMode;
-use loader::{Fetched, Loader, LostPolicy, Shared};
+use loader::{Decoded, Shared};
+use state::{Client, Out};
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::Arc;
 use tokio::sync::mpsc;
@@ -137,6 +142,68 @@ fn sender(me: ActorRef, what: &'static str) -> mpsc::UnboundedSender<(Address, M
     tx
 }
 
+/// Where the client's effects go: three ordered send queues, the
+/// decoders on the blocking pool, and the render threads.
+struct Outlets {
+    /// Control messages: the first requests for work, pongs, lost voxels.
+    control: mpsc::UnboundedSender<(Address, Message)>,
+    /// Finished tiles' pixels and then the request for as many new tiles,
+    /// a batch at a time ([`batch`]): a client that dies with pixels still
+    /// queued has the tile reassigned instead of lost, and a display slow
+    /// to take tiles slows the requests too, which bounds the queue.
+    tiles: mpsc::UnboundedSender<(Address, Message)>,
+    fetches: mpsc::UnboundedSender<(Address, Message)>,
+    decoded: mpsc::UnboundedSender<Decoded>,
+    /// Each render thread's queue of tiles.
+    threads: Vec<mpsc::UnboundedSender<TileJob>>,
+    group: Arc<AtomicUsize>,
+    in_progress: Arc<AtomicUsize>,
+}
+
+impl Outlets {
+    /// Carries out one effect; nothing here waits.
+    fn carry(&self, o: Out) {
+        match o {
+            Out::Control(to, msg) => {
+                let _ = self.control.send((to, msg));
+            }
+            Out::Tile(to, msg) => {
+                let _ = self.tiles.send((to, msg));
+            }
+            Out::Fetch { to, id } => {
+                let _ = self
+                    .fetches
+                    .send((to, Message::FetchVoxel(FetchVoxel { id })));
+            }
+            Out::Decode {
+                id,
+                store,
+                entry,
+                blob,
+            } => {
+                let tx = self.decoded.clone();
+                tokio::task::spawn_blocking(move || {
+                    let result = loader::decode(id, &entry, &blob);
+                    let bytes = blob.len() as u64;
+                    let _ = tx.send(Decoded {
+                        id,
+                        store,
+                        bytes,
+                        result,
+                    });
+                });
+            }
+            Out::Render { thread, job } => {
+                let _ = self.threads[thread].send(job);
+            }
+            Out::Ahead { group, in_progress } => {
+                self.group.store(group, Ordering::Relaxed);
+                self.in_progress.store(in_progress, Ordering::Relaxed);
+            }
+        }
+    }
+}
+
 enum Start<T> {
     Ready(T),
     Stop,
@@ -233,80 +300,44 @@ async fn wait_for_scheduler(mb: &mut Mailbox, opts: &ClientOptions) -> Start<()>
     }
 }
 
-/// A request for `n` more tiles, saying whether `cache` holds the whole
-/// model (so that the scheduler may send blocks of any tiles).
-fn request_work(n: usize, cache: &VoxelCache) -> Message {
-    Message::RequestWork(RequestWork {
-        slots: n.min(u16::MAX as usize) as u16,
-        holds_model: cache.holds_all(),
-    })
-}
-
 /// Runs a client until it gets [`Message::Shutdown`] or its mailbox
 /// closes.
 pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSummary, ActorError> {
     let actor = mb.address().to_string();
-    let mut summary = ClientSummary::default();
     let manifest = match fetch_manifest(&mut mb, &opts, &actor).await? {
         Start::Ready(m) => Arc::new(m),
-        Start::Stop => return Ok(summary),
+        Start::Stop => return Ok(ClientSummary::default()),
     };
     let top = Arc::new(TopLevel::from_manifest(&manifest));
-    let diagonal = manifest.model_bounds.diagonal();
     if let Start::Stop = wait_for_scheduler(&mut mb, &opts).await {
-        return Ok(summary);
+        return Ok(ClientSummary::default());
     }
 
     let me = mb.handle();
     let mut links = LinkMeter::new(me.bus().clone());
-    let fetches = sender(me.clone(), "voxel fetch");
-    // Finished tiles' pixels and the request for as many new tiles go out
-    // in this order in one queue, a batch at a time ([`batch`]): the
-    // scheduler counts a tile done only once its pixels have left (a client
-    // that dies with pixels still queued has the tile reassigned instead of
-    // lost), and it never sees more tiles asked for than the client holds.
-    // A display slow to take tiles therefore slows the requests too, which
-    // also bounds the queue. Other control messages (the first request,
-    // pongs) go in their own.
-    let results = sender(me.clone(), "control message");
-    let pixels = sender(me.clone(), "finished tile");
     let cache = Arc::new(VoxelCache::new(manifest.voxels.len(), opts.cache_bytes));
     let (req_tx, mut req_rx) = mpsc::unbounded_channel();
     let (decoded_tx, mut decoded_rx) = mpsc::unbounded_channel();
     let (done_tx, mut done_rx) = mpsc::unbounded_channel::<Vec<TileResult>>();
-    let mut loader = Loader::new(
-        manifest.clone(),
-        cache.clone(),
-        opts.stores.clone(),
-        opts.max_inflight_fetches,
-        fetches,
-        decoded_tx,
-        LostPolicy {
-            mode: opts.corrupt_voxel,
-            report_to: opts.display.clone(),
-            out: results.clone(),
-        },
-    );
     let shared = Arc::new(Shared {
         cache: cache.clone(),
         requests: req_tx,
     });
+    let mut out = Vec::new();
+    let mut c = Client::new(actor.clone(), &opts, manifest, cache, &mut out);
     let stop = Arc::new(AtomicBool::new(false));
     let threads = opts.threads.max(1);
-    // A blocked thread renders one tile at a time whatever it holds: in
-    // block mode (the demand-paging baseline) the client holds exactly
-    // `tiles_ahead`, as such a client would.
-    let most_ahead = match opts.miss_mode {
-        MissMode::Suspend => opts.max_tiles_ahead,
-        MissMode::Block => opts.tiles_ahead,
+    let group = Arc::new(AtomicUsize::new(c.group()));
+    let in_progress = Arc::new(AtomicUsize::new(c.in_progress()));
+    let mut outlets = Outlets {
+        control: sender(me.clone(), "control message"),
+        tiles: sender(me.clone(), "finished tile"),
+        fetches: sender(me.clone(), "voxel fetch"),
+        decoded: decoded_tx,
+        threads: Vec::with_capacity(threads),
+        group: group.clone(),
+        in_progress: in_progress.clone(),
     };
-    let mut ahead = Ahead::new(opts.tiles_ahead, most_ahead);
-    let mut round_trips = RoundTrips::default();
-    let mut batch = TileBatch::new(ahead.current());
-    // Each thread's share of a batch.
-    let group = Arc::new(AtomicUsize::new((batch.size() / threads).max(1)));
-    let in_progress = Arc::new(AtomicUsize::new(1 + ahead.current()));
-    let mut queues = Vec::with_capacity(threads);
     let mut handles = Vec::with_capacity(threads);
     for i in 0..threads {
         let (tx, rx) = mpsc::unbounded_channel();
@@ -327,151 +358,51 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
                 path: format!("render thread {i}"),
                 source,
             })?;
-        queues.push(tx);
+        outlets.threads.push(tx);
         handles.push(h);
     }
     drop((shared, done_tx));
-    // Tiles to hold: one per thread and those asked ahead.
-    let capacity = |ahead: &Ahead| threads + ahead.current();
-    let mut busy = vec![0usize; threads];
-    // Tiles assigned whose slots are not asked for again yet (being
-    // rendered, queued, or finished and held for a batch).
-    let mut outstanding = 0usize;
-    // Slots asked for that the scheduler has not filled yet.
-    let mut owed = 0usize;
-    let mut scheduler_up = true;
-    // Work is asked for once the preload (if any) is over.
-    let mut asked_for_work = false;
-    let preload_start = Instant::now();
-    if opts.preload {
-        loader.preload();
-    }
     info!(%actor, threads, mode = ?opts.miss_mode, cache_bytes = opts.cache_bytes, "client ready");
 
+    let mut link = || links.take();
     let mut tick = tokio::time::interval(TICK);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     loop {
-        if !asked_for_work && !loader.preloading() {
-            asked_for_work = true;
-            if opts.preload {
-                // What the preload fetched is charged to no frame.
-                let bytes = loader.take_unattributed().compressed;
-                info!(%actor, voxels = loader.stats.preloaded, mb = bytes as f64 / 1e6,
-                    seconds = preload_start.elapsed().as_secs_f64(), "preloaded");
-            }
-            if scheduler_up {
-                owed = capacity(&ahead);
-                round_trips.asked(Instant::now().into_std(), owed);
-                let _ = results.send((opts.scheduler.clone(), request_work(owed, &cache)));
-            }
+        c.ask_once_preloaded(&mut out);
+        // Effects leave in the order the handlers pushed them.
+        for o in out.drain(..) {
+            outlets.carry(o);
         }
         tokio::select! {
             d = mb.recv() => match d {
                 None => break,
                 Some(Delivery::Message { from, msg }) => match msg {
-                    Message::AssignTile(a) => {
-                        let t = (0..threads).min_by_key(|&t| busy[t]).unwrap_or(0);
-                        busy[t] += 1;
-                        outstanding += 1;
-                        owed = owed.saturating_sub(1);
-                        round_trips.assigned(Instant::now().into_std());
-                        batch.assigned(a.frame);
-                        let _ = queues[t].send(job(a, diagonal, opts.isa));
-                    }
-                    Message::VoxelLoaded(v) => loader.loaded(from, v.id, v.data.0),
-                    Message::VoxelError(e) => loader.refused(from, e),
-                    Message::PrefetchHint(h) => loader.hint(&h.voxels.0),
-                    Message::Ping(p) => {
-                        let _ = results.send((from, Message::Pong(p)));
-                    }
+                    Message::AssignTile(a) => c.assign_tile(a, &mut out),
+                    Message::VoxelLoaded(v) => c.voxel_loaded(from, v.id, v.data.0, &mut out),
+                    Message::VoxelError(e) => c.voxel_refused(from, e, &mut out),
+                    Message::PrefetchHint(h) => c.hint(&h.voxels.0, &mut out),
+                    Message::Ping(p) => c.ping(from, p, &mut out),
                     Message::Shutdown(s) => {
                         info!(%actor, reason = %s.reason, "client stopping");
                         break;
                     }
                     other => debug!(%actor, kind = other.kind().name(), %from, "ignored"),
                 },
-                Some(Delivery::PeerUp { node, .. }) => {
-                    if node == opts.scheduler.node && !scheduler_up {
-                        scheduler_up = true;
-                        let free = capacity(&ahead).saturating_sub(outstanding);
-                        // A new scheduler owes nothing; before the preload
-                        // is over, work is not asked for yet.
-                        owed = 0;
-                        round_trips.forget_requests();
-                        if asked_for_work && free > 0 {
-                            owed = free;
-                            round_trips.asked(Instant::now().into_std(), free);
-                            info!(%actor, free, "scheduler is back: asking for work again");
-                            let _ = results.send((
-                                opts.scheduler.clone(),
-                                request_work(free, &cache),
-                            ));
-                        }
-                    }
-                    loader.peer_up(&node);
-                }
-                Some(Delivery::PeerDown { node, reason }) => {
-                    if node == opts.scheduler.node {
-                        if reason.starts_with("closed") {
-                            info!(%actor, %reason, "the scheduler stopped");
-                        } else {
-                            warn!(%actor, %reason, "lost the scheduler");
-                        }
-                        scheduler_up = false;
-                    }
-                }
+                Some(Delivery::PeerUp { node, .. }) => c.peer_up(&node, &mut out),
+                Some(Delivery::PeerDown { node, reason }) => c.peer_down(&node, &reason),
             },
-            Some(req) = req_rx.recv() => loader.request(req),
-            Some(d) = decoded_rx.recv() => loader.decoded(d),
-            Some(tiles) = done_rx.recv() => {
-                let mut resized = false;
-                for r in tiles {
-                    busy[r.thread] = busy[r.thread].saturating_sub(1);
-                    resized |= ahead.tile_finished(r.idle, round_trips.round_trip());
-                    let prefetched = loader.take_unattributed();
-                    let frame = r.job.frame;
-                    batch.finished(
-                        frame,
-                        finish_tile(r, prefetched, opts.pixel_compression, &mut links, &mut summary),
-                    );
-                }
-                if resized {
-                    batch.set_ahead(ahead.current());
-                    group.store((batch.size() / threads).max(1), Ordering::Relaxed);
-                    in_progress.store(1 + ahead.current(), Ordering::Relaxed);
-                    debug!(%actor, tiles_ahead = ahead.current(), "tiles asked ahead");
-                }
-                let freed = if batch.ready() {
-                    let (done, freed) = batch.take();
-                    outstanding = outstanding.saturating_sub(freed);
-                    for msg in done {
-                        let _ = pixels.send((opts.display.clone(), msg));
-                    }
-                    freed
-                } else {
-                    0
-                };
-                // Ask for what the freed slots, and a grown capacity,
-                // leave unasked (after a shrink, fewer than were freed).
-                let ask = capacity(&ahead).saturating_sub(outstanding + owed);
-                if (freed > 0 || resized) && ask > 0 && scheduler_up {
-                    owed += ask;
-                    round_trips.asked(Instant::now().into_std(), ask);
-                    let _ = pixels.send((
-                        opts.scheduler.clone(),
-                        request_work(ask, &cache),
-                    ));
-                }
-            }
-            _ = tick.tick() => loader.tick(),
+            Some(req) = req_rx.recv() => c.voxel_wanted(req, &mut out),
+            Some(d) = decoded_rx.recv() => c.decoded(d, &mut out),
+            Some(tiles) = done_rx.recv() => c.tiles_finished(tiles, &mut link, &mut out),
+            _ = tick.tick() => c.tick(&mut out),
         }
     }
 
     // Stop: no new tiles, every waiting packet gets an error, the threads
     // finish what they are doing and exit.
     stop.store(true, Ordering::Relaxed);
-    loader.stop();
-    drop(queues);
+    c.stop();
+    drop(outlets);
     drop(req_rx);
     drop(done_rx);
     let joined = tokio::task::spawn_blocking(move || {
@@ -486,103 +417,7 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
     if !matches!(joined, Ok(true)) {
         warn!(%actor, "a render thread panicked");
     }
-    let s = &loader.stats;
-    summary.fetched = s.fetched;
-    summary.bytes_fetched = s.bytes_fetched;
-    summary.bytes_raw = s.bytes_raw;
-    summary.refetched = s.refetched;
-    summary.prefetched = s.prefetched;
-    summary.preloaded = s.preloaded;
-    summary.voxels_lost = s.lost;
-    summary.evicted = cache.evicted();
-    summary.peak_cache_bytes = cache.peak_bytes();
-    info!(%actor, ?summary, retries = s.retries, "client stopped");
+    let summary = c.summary();
+    info!(%actor, ?summary, retries = c.retries(), "client stopped");
     Ok(summary)
-}
-
-fn job(a: AssignTile, diagonal: f32, isa: dray_trace::render::Isa) -> TileJob {
-    TileJob {
-        frame: a.frame,
-        tile: a.tile,
-        camera: kernel_camera(&a.camera, a.width, a.height),
-        settings: Arc::new(kernel_settings(&a.settings, diagonal, 1, isa)),
-        want_depth: a.settings.want_depth,
-        want_prim_ids: a.settings.want_prim_ids,
-        assigned: std::time::Instant::now(),
-    }
-}
-
-/// A finished tile's pixels for the display (none if it failed);
-/// `prefetched` bytes (fetched by hints, asked for by no tile) are charged
-/// to it so that frames count every byte fetched, and so is what the
-/// client's links carried since its previous finished tile.
-fn finish_tile(
-    r: TileResult,
-    prefetched: Fetched,
-    compression: Compression,
-    links: &mut LinkMeter,
-    summary: &mut ClientSummary,
-) -> Option<Message> {
-    let TileResult {
-        job,
-        image,
-        mut fetched,
-        stall,
-        ..
-    } = r;
-    fetched += prefetched;
-    match image {
-        Ok(img) => {
-            let st = &img.stats;
-            let rays = st.primary_rays + st.shadow_rays + st.reflection_rays;
-            summary.tiles += 1;
-            summary.rays += rays;
-            summary.misses += st.misses;
-            let stats = TileStats {
-                rays,
-                time_us: job.assigned.elapsed().as_micros() as u64,
-                voxels_touched: st.voxels_touched,
-                // Voxels, not packets: the display's hit rate divides
-                // this by `voxels_touched`.
-                misses: st.voxels_missed,
-                bytes_fetched: fetched.compressed,
-                bytes_raw: fetched.raw,
-                stall_us: stall.as_micros() as u64,
-                link: links.take(),
-            };
-            // One sample per 16 × 16 pixels (2 × 2 in a 32-pixel tile, 8 × 8
-            // in a block of 4 × 4 such tiles): enough for the scheduler to
-            // tell whose content the next frame's tiles show. Each sample
-            // is handled about ten times on its way (sampled, sent, passed
-            // on by the display, placed, projected into the next cameras,
-            // sent to the prefetcher), and denser samples cost the nodes
-            // time without fetching less (`experiments/affinity-inside.toml`).
-            let side = job.tile.w.max(job.tile.h);
-            let hits: Vec<[f32; 3]> = img
-                .sample_hits(
-                    &job.camera,
-                    side.div_ceil(HIT_SPACING).clamp(1, HIT_GRID_MAX),
-                )
-                .iter()
-                .map(|p| p.to_array())
-                .collect();
-            let done = TileDone {
-                frame: job.frame,
-                tile: job.tile,
-                pixels: TilePixels::encode_with(&img.rgba, compression),
-                depth: job.want_depth.then_some(PackedF32(img.depth)),
-                prim_ids: job.want_prim_ids.then_some(PackedU32(img.primid)),
-                stats,
-                hits: BoundedVec::new(hits).unwrap_or_default(),
-            };
-            // The display reports the tile to the scheduler once it has
-            // the pixels: a tile whose pixels die with this client is
-            // reassigned, never counted done.
-            Some(Message::TileDone(done))
-        }
-        Err(e) => {
-            warn!(frame = job.frame, tile = ?job.tile, error = %e, "tile failed");
-            None
-        }
-    }
 }

@@ -20,6 +20,7 @@ use std::time::Instant;
 use tokio::sync::mpsc;
 
 /// One tile to render.
+#[derive(Debug)]
 pub(crate) struct TileJob {
     pub frame: u64,
     pub tile: TileRect,

@@ -4,6 +4,12 @@
 //! out, or, with affinity, a client has run out of its own tiles), so that
 //! the clients render frame k+1's first tiles while frame k's last ones
 //! finish.
+//!
+//! Shape: [`Assigner`] owns the queue and what is being assigned; its
+//! handlers (a camera update, a frame assigned, a release that failed, the
+//! retry timer) change it and push effects ([`Out`]: forward a camera to
+//! the prefetcher, release a frame); [`run_assigner`] receives, calls the
+//! handler and carries the effects out.
 
 use crate::ActorError;
 use dray_protocol::{Address, CameraUpdate, FrameStart, Message, RenderSettings};
@@ -33,47 +39,130 @@ pub const MAX_QUEUED_FRAMES: usize = 64;
 /// How soon a [`FrameStart`] the scheduler could not take is sent again.
 const RETRY: Duration = Duration::from_millis(100);
 
+/// What the assigner's handlers ask the run loop to do, in order.
+#[derive(Debug, PartialEq)]
+enum Out {
+    /// Send the prefetcher a copy of a camera update.
+    Forward(Address, CameraUpdate),
+    /// Release a frame to the scheduler; if that fails the loop calls
+    /// [`Assigner::release_failed`].
+    Release(FrameStart),
+}
+
+/// The frame assigner's state.
+struct Assigner {
+    opts: AssignerOptions,
+    /// Camera updates not released yet, oldest first.
+    queue: VecDeque<CameraUpdate>,
+    /// The highest `seq` seen.
+    newest: Option<u64>,
+    /// The frame released and not yet fully assigned.
+    assigning: Option<u64>,
+    /// Updates dropped because the queue was full.
+    dropped: u64,
+    /// A release failed: nothing goes out until the retry timer fires.
+    retrying: bool,
+}
+
+impl Assigner {
+    fn new(opts: AssignerOptions) -> Assigner {
+        Assigner {
+            opts,
+            queue: VecDeque::new(),
+            newest: None,
+            assigning: None,
+            dropped: 0,
+            retrying: false,
+        }
+    }
+
+    /// The display moved the camera: queue it (dropping the oldest beyond
+    /// [`MAX_QUEUED_FRAMES`]) and forward it to the prefetcher; an update
+    /// not newer than every one seen is ignored.
+    fn camera_update(&mut self, u: CameraUpdate, out: &mut Vec<Out>) {
+        if self.newest.is_some_and(|n| u.seq <= n) {
+            debug!(seq = u.seq, "old camera update ignored");
+            return;
+        }
+        self.newest = Some(u.seq);
+        if let Some(p) = &self.opts.prefetcher {
+            out.push(Out::Forward(p.clone(), u.clone()));
+        }
+        self.queue.push_back(u);
+        while self.queue.len() > MAX_QUEUED_FRAMES {
+            if let Some(old) = self.queue.pop_front() {
+                self.dropped += 1;
+                warn!(
+                    frame = old.seq,
+                    dropped = self.dropped,
+                    "camera updates arrive faster than frames: frame dropped"
+                );
+            }
+        }
+        self.release(out);
+    }
+
+    /// The scheduler has handed out every tile of `frame`: the next one may go.
+    fn frame_assigned(&mut self, frame: u64, out: &mut Vec<Out>) {
+        if self.assigning == Some(frame) {
+            self.assigning = None;
+        } else {
+            debug!(frame, assigning = ?self.assigning, "unexpected frame assigned");
+        }
+        self.release(out);
+    }
+
+    /// The scheduler could not be sent `start`: it goes back to the head
+    /// of the queue and is sent again after [`RETRY`].
+    fn release_failed(&mut self, start: FrameStart) {
+        if self.assigning == Some(start.frame) {
+            self.assigning = None;
+        }
+        self.retrying = true;
+        self.queue.push_front(CameraUpdate {
+            seq: start.frame,
+            camera: start.camera,
+        });
+    }
+
+    /// The retry delay is over.
+    fn retry_due(&mut self, out: &mut Vec<Out>) {
+        self.retrying = false;
+        self.release(out);
+    }
+
+    /// Releases the oldest queued frame if none is being assigned.
+    fn release(&mut self, out: &mut Vec<Out>) {
+        if self.assigning.is_some() || self.retrying {
+            return;
+        }
+        if let Some(u) = self.queue.pop_front() {
+            self.assigning = Some(u.seq);
+            out.push(Out::Release(FrameStart {
+                frame: u.seq,
+                camera: u.camera,
+                width: self.opts.width,
+                height: self.opts.height,
+                settings: self.opts.settings.clone(),
+            }));
+        }
+    }
+}
+
 /// Runs the frame assigner until [`Message::Shutdown`] (or the mailbox
 /// closes). Frame numbers are the updates' `seq`; an update whose `seq` is
 /// not above every one seen before is ignored.
 pub async fn run_assigner(mut mb: Mailbox, opts: AssignerOptions) -> Result<(), ActorError> {
-    let mut queue: VecDeque<CameraUpdate> = VecDeque::new();
-    let mut newest: Option<u64> = None;
-    // The frame released and not yet fully assigned.
-    let mut assigning: Option<u64> = None;
-    let mut dropped = 0u64;
+    let mut a = Assigner::new(opts);
+    let mut out = Vec::new();
     let mut retry_at: Option<tokio::time::Instant> = None;
     loop {
         tokio::select! {
             d = mb.recv() => match d {
                 None => return Ok(()),
                 Some(Delivery::Message { from, msg }) => match msg {
-                    Message::CameraUpdate(u) => {
-                        if newest.is_some_and(|n| u.seq <= n) {
-                            debug!(seq = u.seq, "old camera update ignored");
-                            continue;
-                        }
-                        newest = Some(u.seq);
-                        if let Some(p) = &opts.prefetcher {
-                            if let Err(e) = mb.send(p, Message::CameraUpdate(u.clone())).await {
-                                debug!(to = %p, "cannot forward the camera to the prefetcher: {e}");
-                            }
-                        }
-                        queue.push_back(u);
-                        while queue.len() > MAX_QUEUED_FRAMES {
-                            if let Some(old) = queue.pop_front() {
-                                dropped += 1;
-                                warn!(frame = old.seq, dropped, "camera updates arrive faster than frames: frame dropped");
-                            }
-                        }
-                    }
-                    Message::FrameAssigned(a) => {
-                        if assigning == Some(a.frame) {
-                            assigning = None;
-                        } else {
-                            debug!(frame = a.frame, ?assigning, "unexpected frame assigned");
-                        }
-                    }
+                    Message::CameraUpdate(u) => a.camera_update(u, &mut out),
+                    Message::FrameAssigned(f) => a.frame_assigned(f.frame, &mut out),
                     Message::Shutdown(r) => {
                         info!(reason = %r.reason, "frame assigner stops");
                         return Ok(());
@@ -82,29 +171,157 @@ pub async fn run_assigner(mut mb: Mailbox, opts: AssignerOptions) -> Result<(), 
                 },
                 Some(_) => {}
             },
-            _ = crate::sleep_until_opt(retry_at) => retry_at = None,
+            _ = crate::sleep_until_opt(retry_at) => {
+                retry_at = None;
+                a.retry_due(&mut out);
+            }
         }
-        if assigning.is_none() && retry_at.is_none() {
-            if let Some(u) = queue.pop_front() {
-                let start = FrameStart {
-                    frame: u.seq,
-                    camera: u.camera,
-                    width: opts.width,
-                    height: opts.height,
-                    settings: opts.settings.clone(),
-                };
-                match mb.send(&opts.scheduler, Message::FrameStart(start)).await {
-                    Ok(()) => {
-                        debug!(frame = u.seq, "frame released");
-                        assigning = Some(u.seq);
+        for o in out.drain(..) {
+            match o {
+                Out::Forward(to, u) => {
+                    if let Err(e) = mb.send(&to, Message::CameraUpdate(u)).await {
+                        debug!(%to, "cannot forward the camera to the prefetcher: {e}");
                     }
-                    Err(e) => {
-                        warn!(frame = u.seq, to = %opts.scheduler, "cannot release the frame, retrying: {e}");
-                        queue.push_front(u);
-                        retry_at = Some(tokio::time::Instant::now() + RETRY);
+                }
+                Out::Release(start) => {
+                    let frame = start.frame;
+                    let to = &a.opts.scheduler;
+                    match mb.send(to, Message::FrameStart(start.clone())).await {
+                        Ok(()) => debug!(frame, "frame released"),
+                        Err(e) => {
+                            warn!(frame, %to, "cannot release the frame, retrying: {e}");
+                            a.release_failed(start);
+                            retry_at = Some(tokio::time::Instant::now() + RETRY);
+                        }
                     }
                 }
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The protocol's example frame: a camera and shading.
+    fn example() -> FrameStart {
+        dray_protocol::examples::one_of_each(16)
+            .into_iter()
+            .find_map(|m| match m {
+                Message::FrameStart(f) => Some(f),
+                _ => None,
+            })
+            .expect("the examples hold a frame start")
+    }
+
+    fn assigner(prefetcher: bool) -> Assigner {
+        Assigner::new(AssignerOptions {
+            scheduler: crate::names::scheduler(),
+            prefetcher: prefetcher.then(crate::names::prefetcher),
+            width: 64,
+            height: 48,
+            settings: example().settings,
+        })
+    }
+
+    fn update(seq: u64) -> CameraUpdate {
+        CameraUpdate {
+            seq,
+            camera: example().camera,
+        }
+    }
+
+    fn released(out: &mut Vec<Out>) -> Vec<u64> {
+        out.drain(..)
+            .filter_map(|o| match o {
+                Out::Release(s) => Some(s.frame),
+                Out::Forward(..) => None,
+            })
+            .collect()
+    }
+
+    #[test]
+    fn one_frame_at_a_time_the_next_once_the_last_is_assigned() {
+        let mut a = assigner(false);
+        let mut out = Vec::new();
+        a.camera_update(update(1), &mut out);
+        a.camera_update(update(2), &mut out);
+        a.camera_update(update(3), &mut out);
+        assert_eq!(released(&mut out), [1]);
+        a.frame_assigned(2, &mut out);
+        assert_eq!(
+            released(&mut out),
+            [0u64; 0],
+            "not the frame being assigned"
+        );
+        a.frame_assigned(1, &mut out);
+        assert_eq!(released(&mut out), [2]);
+        a.frame_assigned(2, &mut out);
+        assert_eq!(released(&mut out), [3]);
+        a.frame_assigned(3, &mut out);
+        assert_eq!(released(&mut out), [0u64; 0], "nothing queued");
+        a.camera_update(update(4), &mut out);
+        assert_eq!(released(&mut out), [4], "released at once when idle");
+    }
+
+    #[test]
+    fn a_frame_carries_the_size_and_shading() {
+        let mut a = assigner(false);
+        let mut out = Vec::new();
+        a.camera_update(update(7), &mut out);
+        let Some(Out::Release(s)) = out.pop() else {
+            panic!("no release: {out:?}");
+        };
+        assert_eq!((s.frame, s.width, s.height), (7, 64, 48));
+        assert_eq!(s.settings, example().settings);
+        assert_eq!(s.camera, example().camera);
+    }
+
+    #[test]
+    fn old_updates_are_ignored_and_the_prefetcher_gets_the_rest_first() {
+        let mut a = assigner(true);
+        let mut out = Vec::new();
+        a.camera_update(update(5), &mut out);
+        assert!(
+            matches!(&out[..], [Out::Forward(to, u), Out::Release(s)]
+                if *to == crate::names::prefetcher() && u.seq == 5 && s.frame == 5),
+            "{out:?}"
+        );
+        out.clear();
+        a.camera_update(update(5), &mut out);
+        a.camera_update(update(3), &mut out);
+        assert!(out.is_empty(), "{out:?}");
+    }
+
+    #[test]
+    fn beyond_the_queue_limit_the_oldest_updates_are_dropped() {
+        let mut a = assigner(false);
+        let mut out = Vec::new();
+        let last = MAX_QUEUED_FRAMES as u64 + 11;
+        for seq in 1..=last {
+            a.camera_update(update(seq), &mut out);
+        }
+        assert_eq!(released(&mut out), [1]);
+        assert_eq!(a.dropped, 10);
+        a.frame_assigned(1, &mut out);
+        assert_eq!(released(&mut out), [12], "2..=11 were dropped");
+    }
+
+    #[test]
+    fn a_failed_release_goes_again_after_the_retry() {
+        let mut a = assigner(false);
+        let mut out = Vec::new();
+        a.camera_update(update(1), &mut out);
+        let Some(Out::Release(start)) = out.pop() else {
+            panic!("no release");
+        };
+        a.release_failed(start);
+        a.camera_update(update(2), &mut out);
+        assert_eq!(released(&mut out), [0u64; 0], "nothing before the retry");
+        a.retry_due(&mut out);
+        assert_eq!(released(&mut out), [1], "the failed frame first");
+        a.frame_assigned(1, &mut out);
+        assert_eq!(released(&mut out), [2]);
     }
 }
