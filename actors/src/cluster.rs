@@ -273,7 +273,7 @@ fn spawn_scheduler(cfg: &Config, boxes: [Mailbox; 3]) -> Result<SchedulerTasks, 
         sched,
         SchedulerOptions {
             tile_size: cfg.render.tile_size,
-            affinity: cfg.scheduler.affinity,
+            policy: cfg.scheduler.policy,
             costliest_first: cfg.scheduler.costliest_first,
             max_block_px: cfg.scheduler.max_block_px,
             tile_deadline: Duration::from_millis(cfg.scheduler.tile_deadline_ms),
@@ -302,6 +302,7 @@ fn spawn_scheduler(cfg: &Config, boxes: [Mailbox; 3]) -> Result<SchedulerTasks, 
                 voxels_per_ray: cfg.prefetch.voxels_per_ray,
                 width: cfg.render.width,
                 height: cfg.render.height,
+                policy: cfg.scheduler.policy,
             },
         )))
     } else {

@@ -3,7 +3,7 @@
 //! walk of the same sample rays of the predicted camera enters first.
 
 use dray_actors::names::{self, Shard, StoreRoutes};
-use dray_actors::scheduler::{run_prefetcher, PrefetcherOptions, TileGrid, WARM_AFTER};
+use dray_actors::scheduler::{run_prefetcher, PrefetcherOptions, TileGrid, TilePolicy, WARM_AFTER};
 use dray_actors::settings::kernel_camera;
 use dray_protocol::{
     Blob, BoundedVec, Camera, CameraUpdate, ManifestData, Message, Name, PackedF32, PackedU32,
@@ -170,6 +170,7 @@ async fn scheduler_prefetcher_hints_the_voxels_of_each_clients_tiles() {
             voxels_per_ray: PER_RAY as u32,
             width: W,
             height: H,
+            policy: TilePolicy::Affinity,
         },
     ));
 

@@ -4,7 +4,7 @@
 use dray_actors::names;
 use dray_actors::scheduler::{
     run_assigner, run_scheduler, AssignerOptions, SchedulerOptions, SchedulerSummary, TileGrid,
-    MAX_QUEUED_FRAMES,
+    TilePolicy, MAX_QUEUED_FRAMES,
 };
 use dray_protocol::{
     AssignTile, BoundedVec, Camera, CameraUpdate, FrameAssigned, FrameDone, LinkBytes, Message,
@@ -239,7 +239,11 @@ fn options(affinity: bool, deadline: Duration) -> SchedulerOptions {
     SchedulerOptions {
         tile_size: 32,
         max_block_px: 0,
-        affinity,
+        policy: if affinity {
+            TilePolicy::Affinity
+        } else {
+            TilePolicy::Random
+        },
         costliest_first: true,
         tile_deadline: deadline,
         display: names::display(),

@@ -258,22 +258,20 @@ fn default_tile() -> u32 {
 pub struct SchedulerConfig {
     /// `host:port` it listens on (QUIC, UDP).
     pub address: String,
-    /// Give a tile preferably to the client whose cache holds what it
-    /// shows: while the camera travels the way it looks, the client whose
-    /// sector around the image's centre it lies in (content streams
-    /// outward along the sectors); else the client that rendered what the
-    /// tile shows now in the last frame (reprojection).
-    #[serde(default = "yes")]
-    pub affinity: bool,
-    /// Hand out the costliest tiles (by last frame's time) first.
+    /// Which tile policy hands out the tiles (see [`TilePolicy`]).
+    #[serde(default, deserialize_with = "tile_policy")]
+    pub policy: TilePolicy,
+    /// A knob of the `affinity` policy: hand out a client's tiles (and
+    /// tiles taken from others) costliest first, by the last frame's time
+    /// of each tile.
     #[serde(default = "yes")]
     pub costliest_first: bool,
     /// A tile not done this long after its assignment (and at least 8
     /// times the frame's median tile time) is given to another client, ms.
     #[serde(default = "default_deadline")]
     pub tile_deadline_ms: u64,
-    /// With affinity, early in a frame a client gets an aligned block of
-    /// its tiles as one assignment, at most this many pixels a side (its
+    /// A knob of the `affinity` policy: early in a frame a client gets an
+    /// aligned block of its tiles as one assignment, at most this many pixels a side (its
     /// pixels come back in one message; the blocks shrink to single tiles
     /// as the frame's tiles run out, and only tiles the previous frame
     /// rendered without a miss go in blocks, unless the client's cache
@@ -281,6 +279,65 @@ pub struct SchedulerConfig {
     /// tile size hands out single tiles only.
     #[serde(default = "default_max_block_px")]
     pub max_block_px: u32,
+}
+
+/// The closed set of tile policies, chosen by name with `scheduler.policy`.
+/// The scheduler implements each in its own file under
+/// `actors/src/scheduler/policy/`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub enum TilePolicy {
+    /// Each tile preferably to the client whose cache holds what it shows:
+    /// while the camera travels the way it looks, the client whose sector
+    /// around the image's centre it lies in; else the client that rendered
+    /// in the last frame what the tile shows now (reprojection); else its
+    /// last client.
+    #[default]
+    Affinity,
+    /// A uniformly random fresh tile to whichever client asks (the
+    /// baseline affinity is measured against).
+    Random,
+}
+
+impl TilePolicy {
+    /// Every policy, in the order the choices are listed.
+    pub const ALL: [TilePolicy; 2] = [TilePolicy::Affinity, TilePolicy::Random];
+
+    /// The policy's name in the config.
+    pub fn name(self) -> &'static str {
+        match self {
+            TilePolicy::Affinity => "affinity",
+            TilePolicy::Random => "random",
+        }
+    }
+}
+
+impl std::fmt::Display for TilePolicy {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl std::str::FromStr for TilePolicy {
+    type Err = String;
+
+    /// A policy by its name; the error names the key and the choices.
+    fn from_str(s: &str) -> Result<TilePolicy, String> {
+        TilePolicy::ALL
+            .into_iter()
+            .find(|p| p.name() == s)
+            .ok_or_else(|| {
+                let names: Vec<&str> = TilePolicy::ALL.iter().map(|p| p.name()).collect();
+                format!(
+                    "scheduler.policy: {s:?} is not a tile policy; the choices are {}",
+                    names.join(", ")
+                )
+            })
+    }
+}
+
+fn tile_policy<'de, D: serde::Deserializer<'de>>(d: D) -> Result<TilePolicy, D::Error> {
+    let s = String::deserialize(d)?;
+    s.parse().map_err(serde::de::Error::custom)
 }
 
 fn yes() -> bool {

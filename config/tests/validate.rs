@@ -1,6 +1,6 @@
 //! The example parses; each kind of mistake is named by its key.
 
-use dray_config::{Compression, Config, ConfigError, MissMode};
+use dray_config::{Compression, Config, ConfigError, MissMode, TilePolicy};
 use std::path::Path;
 
 fn example_text() -> String {
@@ -208,6 +208,35 @@ fn unknown_fields_and_wrong_types_are_refused_by_toml() {
     let e = broken("width = 1280", "width = \"wide\"");
     assert!(matches!(e, ConfigError::Parse { .. }));
     assert!(e.to_string().contains("width"), "{e}");
+}
+
+#[test]
+fn the_tile_policy_is_chosen_by_name_from_a_closed_set() {
+    let cfg = Config::parse(&example_text()).unwrap();
+    assert_eq!(cfg.scheduler.policy, TilePolicy::Affinity);
+    let random = example_text().replacen("policy = \"affinity\"", "policy = \"random\"", 1);
+    assert_eq!(
+        Config::parse(&random).unwrap().scheduler.policy,
+        TilePolicy::Random
+    );
+    let unset = example_text().replacen("policy = \"affinity\"", "", 1);
+    assert_eq!(
+        Config::parse(&unset).unwrap().scheduler.policy,
+        TilePolicy::Affinity,
+        "the default"
+    );
+    for p in TilePolicy::ALL {
+        assert_eq!(p.name().parse::<TilePolicy>(), Ok(p));
+    }
+    let e = broken("policy = \"affinity\"", "policy = \"fastest\"");
+    assert!(matches!(e, ConfigError::Parse { .. }));
+    assert_names(e, "scheduler.policy", "the choices are affinity, random");
+    // The boolean it replaced is refused, not silently ignored.
+    assert_names(
+        broken("policy = \"affinity\"", "affinity = true"),
+        "",
+        "unknown field `affinity`",
+    );
 }
 
 #[test]

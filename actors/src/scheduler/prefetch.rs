@@ -3,6 +3,8 @@
 //! which voxels the tiles it will probably get next will enter, so that its
 //! loader fetches them before the tiles arrive.
 
+use super::policy::{self, LastFrame, TilePolicy};
+use super::tiles::TileGrid;
 use crate::names::{StoreRoutes, CLIENT};
 use crate::settings::kernel_camera;
 use crate::ActorError;
@@ -34,6 +36,8 @@ pub struct PrefetcherOptions {
     pub width: u32,
     /// Image height, pixels.
     pub height: u32,
+    /// The scheduler's tile policy, whose prediction the hints follow.
+    pub policy: TilePolicy,
 }
 
 /// What the prefetcher did, returned when it stops.
@@ -75,7 +79,7 @@ const RECENT_CAMERAS: usize = 16;
 /// look point extrapolated linearly (per frame number), the rest as the
 /// latest. Falls back to the latest camera when the extrapolation is not a
 /// usable view, and after a cut (the camera turned by more than half the
-/// field of view from the one before, see [`super::reproject::continues`]):
+/// field of view from the one before, see [`policy::reproject::continues`]):
 /// a jump is no motion to go on with (extrapolated across a jump back to
 /// a path's start, it would predict a view as far beyond the start).
 pub fn predict_camera(prev: Option<(u64, &Camera)>, last: (u64, &Camera), next: u64) -> Camera {
@@ -85,7 +89,7 @@ pub fn predict_camera(prev: Option<(u64, &Camera)>, last: (u64, &Camera), next: 
     };
     let basis = |c: &Camera| kernel_camera(c, 1, 1).basis();
     // No hits at hand: by the turn alone.
-    if !super::reproject::continues(&basis(c0), &basis(c1), std::iter::empty()) {
+    if !policy::reproject::continues(&basis(c0), &basis(c1), std::iter::empty()) {
         return *c1;
     }
     let k = (next.saturating_sub(s1)) as f32 / (s1 - s0) as f32;
@@ -106,72 +110,52 @@ pub fn predict_camera(prev: Option<(u64, &Camera)>, last: (u64, &Camera), next: 
 }
 
 /// Per tile of `grid` seen through `camera`, the index (in `owners`'
-/// clients) of the client the scheduler will give it, as it assigns tiles:
-/// by sectors while the image streams from a point in view (when the
-/// `owners` frame's camera, `then`, is known), else the client whose
-/// content of the `owners` frame lands in it most, else the tile's owner
-/// then (u32::MAX: none).
-fn recipients(
+/// clients) of the client the scheduler will give it (u32::MAX: none):
+/// `policy`'s prediction ([`policy::predict_owners`], the rule the
+/// scheduler sorts its tiles by), judged from the `owners` frame, whose
+/// camera `then` is known or not.
+pub(super) fn recipients(
     owners: &TileOwners,
     then: Option<&Camera>,
     camera: &Camera,
-    grid: &super::tiles::TileGrid,
+    grid: &TileGrid,
+    policy: TilePolicy,
 ) -> Vec<u32> {
-    let basis = kernel_camera(camera, owners.width, owners.height).basis();
-    if let Some(then) = then {
-        let clients = owners.clients.as_slice();
-        let before: Vec<Option<&Name>> = (0..grid.count())
-            .map(|t| {
-                owners
-                    .owners
-                    .0
-                    .get(t)
-                    .and_then(|&c| clients.get(c as usize))
-            })
-            .collect();
-        let hits = owners
-            .hits
-            .0
-            .chunks_exact(3)
-            .map(|p| Vec3::new(p[0], p[1], p[2]))
-            .filter(|p| p.is_finite());
-        let then = kernel_camera(then, owners.width, owners.height).basis();
-        // After a cut the scheduler keeps each tile with its last client.
-        if !super::reproject::continues(&then, &basis, hits.clone()) {
-            return (0..grid.count())
-                .map(|t| owners.owners.0.get(t).copied().unwrap_or(u32::MAX))
-                .collect();
-        }
-        if let Some(by) = super::sectors::assign(grid, &then, &basis, hits, &before) {
-            return by
-                .into_iter()
-                .map(|n| {
-                    clients
-                        .iter()
-                        .position(|c| c == n)
-                        .map_or(u32::MAX, |i| i as u32)
-                })
-                .collect();
-        }
-    }
-    let mut samples = Vec::new();
+    let clients = owners.clients.as_slice();
+    let names: Vec<Option<Name>> = (0..grid.count())
+        .map(|t| {
+            let c = *owners.owners.0.get(t)?;
+            clients.get(c as usize).cloned()
+        })
+        .collect();
+    // Each tile's hits, as many as its count says.
+    let mut hits: Vec<Vec<Vec3>> = vec![Vec::new(); grid.count()];
     let mut at = 0;
-    for (&n, &c) in owners.hit_counts.0.iter().zip(&owners.owners.0) {
+    for (t, &n) in owners.hit_counts.0.iter().enumerate() {
         let end = at + 3 * n as usize;
-        if let Some(xyz) = owners.hits.0.get(at..end).filter(|_| c != u32::MAX) {
-            samples.extend(
+        if let (Some(xyz), Some(h)) = (owners.hits.0.get(at..end), hits.get_mut(t)) {
+            h.extend(
                 xyz.chunks_exact(3)
-                    .map(|p| (c, Vec3::new(p[0], p[1], p[2])))
-                    .filter(|(_, p)| p.is_finite()),
+                    .map(|p| Vec3::new(p[0], p[1], p[2]))
+                    .filter(|p| p.is_finite()),
             );
         }
         at = end;
     }
-    let votes = super::reproject::votes(grid, &basis, samples);
-    (0..grid.count())
-        .map(|t| match super::reproject::most(&votes[t]) {
-            Some(&c) => c,
-            None => owners.owners.0.get(t).copied().unwrap_or(u32::MAX),
+    let last = LastFrame {
+        camera: then.map(|c| kernel_camera(c, owners.width, owners.height).basis()),
+        grid: *grid,
+        owners: &names,
+        hits: &hits,
+    };
+    let now = kernel_camera(camera, owners.width, owners.height).basis();
+    policy::predict_owners(policy, grid, &now, &last)
+        .owners
+        .iter()
+        .map(|o| {
+            o.as_ref()
+                .and_then(|n| clients.iter().position(|c| c == n))
+                .map_or(u32::MAX, |i| i as u32)
         })
         .collect()
 }
@@ -180,13 +164,12 @@ fn recipients(
 /// most urgent first (nearest along the rays, then most often), at most
 /// [`MAX_PREFETCH_IDS`]. Sample pixels are the centre pixels of each
 /// `step` × `step` block of a `width` × `height` image; each goes to the
-/// client the scheduler will probably give its tile: by sectors while the
-/// image streams from a point in view (`owners_camera` is the `owners`
-/// frame's camera, if known), else the one whose content of the `owners`
-/// frame lands there most, else the tile's owner in that frame (tiles of
-/// none are skipped, and so are those of a client that holds the whole
-/// model).
+/// client the scheduler will probably give its tile by `policy` (see
+/// [`recipients`]; `owners_camera` is the `owners` frame's camera, if
+/// known). Tiles of no client are skipped, and so are those of a client
+/// that holds the whole model.
 pub fn plan_hints(
+    policy: TilePolicy,
     top: &TopLevel,
     (owners, owners_camera): (&TileOwners, Option<&Camera>),
     camera: &Camera,
@@ -196,8 +179,8 @@ pub fn plan_hints(
 ) -> Vec<(Name, Vec<u32>)> {
     let step = step.max(1);
     let basis = kernel_camera(camera, width, height).basis();
-    let grid = super::tiles::TileGrid::new(owners.width, owners.height, owners.tile_size);
-    let recipients = recipients(owners, owners_camera, camera, &grid);
+    let grid = TileGrid::new(owners.width, owners.height, owners.tile_size);
+    let recipients = recipients(owners, owners_camera, camera, &grid, policy);
     let clients = owners.clients.as_slice();
     // No rays for the tiles of a client that holds the whole model.
     let whole: Vec<bool> = clients
@@ -302,8 +285,10 @@ impl Prefetcher {
         let (top, owners, then) = (top.clone(), owners.clone(), self.owners_camera);
         let o = &self.opts;
         let (w, h, step, per_ray) = (o.width, o.height, o.step, o.voxels_per_ray);
+        let policy = o.policy;
         let planned = tokio::task::spawn_blocking(move || {
             plan_hints(
+                policy,
                 &top,
                 (&owners, then.as_ref()),
                 &camera,
@@ -517,10 +502,10 @@ mod tests {
         let b = kernel_camera(&camera, 64, 64).basis();
         // What client 0 rendered in tile 0 is now in tile 3 (bottom right).
         let owners = owners_2x2([0, u32::MAX, 1, 1], [2, 0, 0, 0], &in_tile_3(&b));
-        let grid = super::super::tiles::TileGrid::new(64, 64, 32);
+        let grid = TileGrid::new(64, 64, 32);
         // Tiles where nothing lands keep their owner (or none).
         assert_eq!(
-            recipients(&owners, None, &camera, &grid),
+            recipients(&owners, None, &camera, &grid, TilePolicy::Affinity),
             vec![0, u32::MAX, 1, 0]
         );
     }
@@ -537,16 +522,16 @@ mod tests {
         // (so reprojection would give tile 3 to client 0).
         let b = kernel_camera(&now, 64, 64).basis();
         let owners = owners_2x2([0, u32::MAX, 1, 1], [2, 0, 0, 0], &in_tile_3(&b));
-        let grid = super::super::tiles::TileGrid::new(64, 64, 32);
+        let grid = TileGrid::new(64, 64, 32);
         assert_eq!(
-            recipients(&owners, None, &now, &grid),
+            recipients(&owners, None, &now, &grid, TilePolicy::Affinity),
             vec![0, u32::MAX, 1, 0],
             "reprojected"
         );
         // Knowing the owners' camera, the cut shows: as the scheduler
         // assigns, each tile to its last client.
         assert_eq!(
-            recipients(&owners, Some(&then), &now, &grid),
+            recipients(&owners, Some(&then), &now, &grid, TilePolicy::Affinity),
             vec![0, u32::MAX, 1, 1]
         );
     }
@@ -568,7 +553,7 @@ mod tests {
             .collect();
         // Left half client 1, right half client 0.
         let owners = owners_2x2([1, 0, 1, 0], [2, 2, 1, 1], &hits);
-        let grid = super::super::tiles::TileGrid::new(64, 64, 32);
+        let grid = TileGrid::new(64, 64, 32);
         // Two sectors around the centre, turned to keep the most tiles:
         // what the scheduler will assign.
         let before: Vec<Option<&Name>> = [1, 0, 1, 0]
@@ -582,7 +567,7 @@ mod tests {
             .0
             .chunks_exact(3)
             .map(|p| Vec3::new(p[0], p[1], p[2]));
-        let expected = super::super::sectors::assign(&grid, &tb, &nb, points, &before)
+        let expected = policy::sectors::assign(&grid, &tb, &nb, points, &before)
             .expect("walking forward: sectors");
         let expected: Vec<u32> = expected
             .iter()
@@ -596,8 +581,26 @@ mod tests {
             })
             .collect();
         assert_eq!(expected.len(), grid.count());
-        assert_eq!(recipients(&owners, Some(&then), &now, &grid), expected);
+        assert_eq!(
+            recipients(&owners, Some(&then), &now, &grid, TilePolicy::Affinity),
+            expected
+        );
         // Without the earlier camera: reprojection, as before.
-        assert_ne!(recipients(&owners, None, &now, &grid), expected);
+        assert_ne!(
+            recipients(&owners, None, &now, &grid, TilePolicy::Affinity),
+            expected
+        );
+    }
+
+    #[test]
+    fn no_hints_where_the_random_policy_assigns() {
+        let then = towards_origin();
+        let b = kernel_camera(&then, 64, 64).basis();
+        let owners = owners_2x2([0, 1, 1, 0], [2, 0, 0, 0], &in_tile_3(&b));
+        let grid = TileGrid::new(64, 64, 32);
+        assert_eq!(
+            recipients(&owners, Some(&then), &then, &grid, TilePolicy::Random),
+            vec![u32::MAX; 4]
+        );
     }
 }

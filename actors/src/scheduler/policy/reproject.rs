@@ -1,9 +1,11 @@
 //! Reprojection affinity (the paper's): where the content of the previous
 //! frame lands in a new camera, and so which client's cache holds what each
-//! tile of the new frame shows. The scheduler assigns tiles by it and the
-//! prefetcher sends its hints by it.
+//! tile of the new frame shows; and whether the new camera continues from
+//! the old one at all. The affinity policy's prediction goes by it (see
+//! [`super::affinity`]), and the prefetcher's camera extrapolation stops
+//! at a cut.
 
-use super::tiles::TileGrid;
+use crate::scheduler::tiles::TileGrid;
 use dray_trace::camera::CameraBasis;
 use glam::Vec3;
 use std::collections::BTreeMap;

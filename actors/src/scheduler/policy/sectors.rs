@@ -14,9 +14,9 @@
 //! which the previous frame's hit samples move into the new camera (as
 //! reprojection finds them). While it lies in view the scheduler cuts the
 //! sectors around the image's centre, which stays put as the focus
-//! drifts (see the scheduler's `sector_owners`).
+//! drifts (see [`super::affinity`]).
 
-use super::tiles::TileGrid;
+use crate::scheduler::tiles::TileGrid;
 use dray_trace::camera::CameraBasis;
 use glam::Vec3;
 

@@ -1,9 +1,12 @@
-//! The Scheduler actor: cuts the frames the assigner releases into tiles and
-//! hands them to clients on demand, with tile affinity, costliest tiles
-//! first, and reassignment of the tiles of lost or silent clients.
+//! The Scheduler actor's frames in flight: it cuts the frames the assigner
+//! releases into tiles and hands them to clients on demand, in the order
+//! of the configured tile policy ([`super::policy`]), keeps each tile's
+//! holders until one reports it, gives the tiles of lost or silent clients
+//! to others, and sums each complete frame's statistics. The state is a
+//! plain struct with handlers that return the messages to send ([`Out`]);
+//! [`run_scheduler`] is the thin loop around them.
 
-use super::reproject;
-use super::sectors;
+use super::policy::{self, FrameView, Policy, Previous, Queues, TilePolicy};
 use super::tiles::TileGrid;
 use crate::settings::kernel_camera;
 use crate::ActorError;
@@ -15,7 +18,7 @@ use dray_protocol::{
 use dray_runtime::{Delivery, Mailbox};
 use dray_scene::rng::Rng;
 use glam::Vec3;
-use std::collections::{BTreeMap, BTreeSet, HashMap, VecDeque};
+use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::time::Duration;
 use tokio::time::Instant;
 use tracing::{debug, info, warn};
@@ -25,16 +28,15 @@ use tracing::{debug, info, warn};
 pub struct SchedulerOptions {
     /// Tile side, pixels.
     pub tile_size: u32,
-    /// Give each client first the tiles it rendered in the previous frame
-    /// (its voxel cache holds what they need); otherwise a uniformly random
-    /// unassigned tile (the baseline).
-    pub affinity: bool,
-    /// With affinity, hand out a client's tiles (and stolen tiles) costliest
-    /// first, by the previous frame's measured time of each tile.
+    /// Which policy hands out the tiles (see [`super::policy`]).
+    pub policy: TilePolicy,
+    /// A knob of the affinity policy: a client's tiles (and tiles taken
+    /// from others) go out costliest first, by the last frame's measured
+    /// time of each tile.
     pub costliest_first: bool,
-    /// With affinity, early in a frame the tiles go out in aligned blocks
-    /// of at most this many pixels a side (see [`Frame::block`]); under
-    /// twice `tile_size`, one tile at a time.
+    /// A knob of the affinity policy: early in a frame the tiles go out in
+    /// aligned blocks of at most this many pixels a side; under twice
+    /// `tile_size`, one tile at a time.
     pub max_block_px: u32,
     /// A tile outstanding longer than this (and than 8 × the median tile
     /// time of its frame so far) is given to another client too.
@@ -45,7 +47,7 @@ pub struct SchedulerOptions {
     pub assigner: Address,
     /// Where [`TileOwners`] goes, if there is a prefetcher.
     pub prefetcher: Option<Address>,
-    /// Seed of the random choice without affinity.
+    /// Seed of the random policy's choices.
     pub seed: u64,
 }
 
@@ -62,17 +64,12 @@ pub struct SchedulerSummary {
 
 /// How often outstanding tiles are checked against the deadline.
 const DEADLINE_CHECK: Duration = Duration::from_millis(20);
-/// A block of n tiles goes out as one assignment only while the frame
-/// has at least `n × clients × BLOCK_GUIDE` fresh tiles left (guided
-/// self-scheduling: a block is at most half of each client's share of
-/// what is left).
-const BLOCK_GUIDE: usize = 2;
 /// Most credits one client may hold.
 const MAX_CREDITS: u32 = 4096;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-enum State {
-    /// Never assigned: in a group queue (affinity) or the pool (random).
+pub(super) enum State {
+    /// Never assigned: in its policy's queues.
     Fresh,
     /// Assigned, not reported.
     Out,
@@ -84,8 +81,9 @@ enum State {
 }
 
 /// A client that has a tile to render.
-struct Holder {
-    client: Name,
+pub(super) struct Holder {
+    /// Who holds it.
+    pub client: Name,
     /// When it was assigned.
     since: Instant,
     /// Tiles in the block it came in (1: alone), which the deadline
@@ -93,23 +91,12 @@ struct Holder {
     block: u32,
 }
 
-struct Tile {
-    state: State,
+/// A tile of a frame in flight.
+pub(super) struct Tile {
+    /// Where it is in its life.
+    pub state: State,
     /// Assignments not reported yet.
-    outstanding: Vec<Holder>,
-}
-
-/// The last completed frame: what affinity and costliest-first go by.
-struct Previous {
-    number: u64,
-    camera: Camera,
-    grid: TileGrid,
-    costs: Vec<u64>,
-    owners: Vec<Option<Name>>,
-    /// Per tile, the world positions of some of its hits.
-    hits: Vec<Vec<Vec3>>,
-    /// Per tile, whether its packets met a voxel their client lacked.
-    missed: Vec<bool>,
+    pub outstanding: Vec<Holder>,
 }
 
 struct Frame {
@@ -118,24 +105,8 @@ struct Frame {
     settings: RenderSettings,
     grid: TileGrid,
     tiles: Vec<Tile>,
-    /// Affinity: per previous owner, the fresh tiles, `pop()` giving the
-    /// next one.
-    groups: Vec<Vec<usize>>,
-    /// Affinity: the fresh tiles nobody owned, by curve position.
-    unowned: BTreeMap<u32, usize>,
-    /// Affinity: the curve position of the tile each client got last (its
-    /// region's growing edge).
-    last: HashMap<Name, u32>,
-    group_of: HashMap<Name, usize>,
-    /// Each tile's position along the grid's space-filling curve.
-    ranks: Vec<u32>,
-    /// Affinity: per client, the curve positions of the tiles it owned in
-    /// the previous frame and of those it was given in this one: the
-    /// screen region its cache holds, which tiles it takes beyond its own
-    /// should border.
-    region: HashMap<Name, BTreeSet<u32>>,
-    /// Without affinity: the fresh tiles.
-    pool: Vec<usize>,
+    /// The fresh tiles, queued by the policy.
+    queues: Box<dyn Queues>,
     /// Tiles to give to another client before any fresh one.
     retry: VecDeque<usize>,
     /// Tiles never assigned yet.
@@ -155,30 +126,20 @@ struct Frame {
     /// Per tile, whether its packets met a voxel their client lacked, as
     /// reported (for a block: any of its tiles).
     missed: Vec<bool>,
-    /// Per tile, whether the previous frame rendered it without a miss
-    /// (on the same grid): only such tiles go out in blocks, except to a
-    /// client that holds the whole model.
-    warm: Vec<bool>,
-    /// Affinity: per tile, the client whose cache should hold what it
-    /// shows (see [`Frame::reprojection`]).
-    affine: Vec<Option<Name>>,
-    /// Affinity: per tile, how many of the previous frame's hit samples
-    /// of each client land in it.
-    votes: Vec<Vec<(Name, u32)>>,
     /// Time of each tile done so far, for the deadline's median.
     times: Vec<u64>,
     median: (usize, u64),
     /// Per client, the tiles it holds (outstanding at it): kept with the
     /// tiles' holders, as the scheduler asks after every message.
     held: HashMap<Name, usize>,
-    /// Affinity while no frame has completed yet: per tile, its client in
-    /// the frame in flight when this one started (see
+    /// While no frame has completed yet: per tile, its client in the
+    /// frame in flight when this one started (see
     /// [`Frame::clients_so_far`]).
     first_guide: Option<Vec<Option<Name>>>,
 }
 
 impl Frame {
-    fn new(f: FrameStart, tile_size: u32) -> Frame {
+    fn new(f: FrameStart, tile_size: u32, policy: &dyn Policy) -> Frame {
         let grid = TileGrid::new(f.width, f.height, tile_size);
         let n = grid.count();
         Frame {
@@ -192,13 +153,7 @@ impl Frame {
                     outstanding: Vec::new(),
                 })
                 .collect(),
-            groups: Vec::new(),
-            unowned: BTreeMap::new(),
-            last: HashMap::new(),
-            group_of: HashMap::new(),
-            ranks: grid.curve_ranks(),
-            region: HashMap::new(),
-            pool: Vec::new(),
+            queues: policy.queues(&grid),
             retry: VecDeque::new(),
             fresh_left: n,
             announced: false,
@@ -214,9 +169,6 @@ impl Frame {
             owners: vec![None; n],
             hits: vec![Vec::new(); n],
             missed: vec![false; n],
-            warm: vec![false; n],
-            affine: vec![None; n],
-            votes: vec![Vec::new(); n],
             times: Vec::new(),
             median: (0, 0),
             held: HashMap::new(),
@@ -237,161 +189,19 @@ impl Frame {
             .collect()
     }
 
-    /// The paper's reprojection affinity: each tile goes preferably to the
-    /// client that rendered most of the previous frame's content that
-    /// lands in it (the previous frame's hit samples projected into this
-    /// frame's camera), as that client's cache holds it; where nothing
-    /// lands (sky, or content just come into view) to the tile's previous
-    /// owner. Content that moves across the screen keeps its client.
-    ///
-    /// Returns each tile's client and the samples of each client that
-    /// land in it.
-    #[allow(clippy::type_complexity)]
-    fn reprojection(&self, prev: &Previous) -> (Vec<Option<Name>>, Vec<Vec<(Name, u32)>>) {
-        let camera = kernel_camera(&self.camera, self.grid.width, self.grid.height).basis();
-        let samples = prev
-            .hits
-            .iter()
-            .zip(&prev.owners)
-            .filter_map(|(hits, owner)| Some((hits, owner.as_ref()?)))
-            .flat_map(|(hits, owner)| hits.iter().map(move |&h| (owner, h)));
-        let votes = reproject::votes(&self.grid, &camera, samples);
-        let same_grid = prev.grid == self.grid;
-        let owners = votes
-            .iter()
-            .enumerate()
-            .map(|(i, v)| match reproject::most(v) {
-                Some(n) => Some((*n).clone()),
-                None if same_grid => prev.owners[i].clone(),
-                None => None,
-            })
-            .collect();
-        let votes = votes
-            .into_iter()
-            .map(|v| v.into_iter().map(|(n, c)| (n.clone(), c)).collect())
-            .collect();
-        (owners, votes)
-    }
-
-    /// Each tile's client by sectors around the image's centre, among the
-    /// clients that rendered `prev`, while the image streams from a point
-    /// in view between `prev` and this frame (the camera travels roughly
-    /// the way it looks; see [`sectors::assign`]); `None` otherwise, and
-    /// reprojection decides.
-    fn sector_owners(&self, prev: &Previous) -> Option<Vec<Option<Name>>> {
-        let now = kernel_camera(&self.camera, self.grid.width, self.grid.height).basis();
-        let then = kernel_camera(&prev.camera, prev.grid.width, prev.grid.height).basis();
-        // Who had each tile before, on the same grid.
-        let before: Vec<Option<&Name>> = if prev.grid == self.grid {
-            prev.owners.iter().map(Option::as_ref).collect()
-        } else {
-            vec![None; self.tiles.len()]
-        };
-        let hits = prev.hits.iter().flatten().copied();
-        let owners = sectors::assign(&self.grid, &then, &now, hits, &before)?;
-        Some(owners.into_iter().map(|n| Some(n.clone())).collect())
-    }
-
-    /// Whether this frame continues from `prev` (see
-    /// [`reproject::continues`]).
-    fn continues_from(&self, prev: &Previous) -> bool {
-        let now = kernel_camera(&self.camera, self.grid.width, self.grid.height).basis();
-        let then = kernel_camera(&prev.camera, prev.grid.width, prev.grid.height).basis();
-        reproject::continues(&then, &now, prev.hits.iter().flatten().copied())
-    }
-
-    /// Sorts the fresh tiles into queues: per affinity client when
-    /// `affinity` (costliest first, or in index order), else one pool.
-    ///
-    /// Without a previous frame every tile is in the "nobody's" group, and
-    /// clients take from it by their regions (see [`Frame::take_for`]).
+    /// Sorts the fresh tiles into the policy's queues, judged from the
+    /// last completed frame (`prev`).
     fn sort_fresh(&mut self, prev: Option<&Previous>, opts: &SchedulerOptions) {
-        let fresh: Vec<usize> = (0..self.tiles.len())
-            .filter(|&i| self.tiles[i].state == State::Fresh)
-            .collect();
-        if !opts.affinity {
-            self.pool = fresh;
-            return;
-        }
-        // After a cut (see `reproject::continues`) the previous frame's
-        // content is mostly out of view: its misses and costs say nothing
-        // about the new tiles, and its hits land in the wrong ones. Each
-        // client keeps its part of the screen (its previous tiles), so that
-        // the clients stay on the sides of the image whose content they
-        // cached as the path goes on; regions grown afresh fetch far more
-        // (`experiments/affinity-inside.toml`).
-        let cut = prev.filter(|p| !self.continues_from(p));
-        let guide = prev.filter(|_| cut.is_none());
-        self.warm = match guide.filter(|p| p.grid == self.grid) {
-            Some(p) => p.missed.iter().map(|&m| !m).collect(),
-            None => vec![false; self.tiles.len()],
+        let view = FrameView {
+            grid: &self.grid,
+            camera: &self.camera,
+            tiles: &self.tiles,
+            owners: &self.owners,
+            fresh_left: self.fresh_left,
+            first_guide: self.first_guide.as_deref(),
         };
-        (self.affine, self.votes) = match guide {
-            Some(p) => self.reprojection(p),
-            None => {
-                let affine = match cut {
-                    Some(p) if p.grid == self.grid => Some(p.owners.clone()),
-                    Some(_) => None,
-                    // No frame has completed, but one is in flight: its
-                    // clients, so that the first frames' regions agree
-                    // (each grown on its own, the second frame's would
-                    // disagree with the first's by chance and, with cold
-                    // caches, fetch far more: `experiments/latency-hiding.toml`).
-                    None => self.first_guide.clone(),
-                };
-                let n = self.tiles.len();
-                (affine.unwrap_or_else(|| vec![None; n]), vec![Vec::new(); n])
-            }
-        };
-        // While the image streams from a point in view (the camera travels
-        // the way it looks), the clients' sectors around the image's
-        // centre instead (see `sectors`). A client out of tiles still
-        // takes by the votes.
-        if let Some(owners) = guide.and_then(|p| self.sector_owners(p)) {
-            self.affine = owners;
-        }
-        let costs = guide.filter(|p| p.grid == self.grid).map(|p| &p.costs);
-        self.groups.clear();
-        self.group_of.clear();
-        self.region.clear();
-        for i in 0..self.tiles.len() {
-            // Whoever has it in this frame, else its affinity client.
-            let owner = self.owners[i]
-                .as_ref()
-                .or(self.tiles[i].outstanding.first().map(|h| &h.client))
-                .or(self.affine[i].as_ref());
-            if let Some(o) = owner {
-                self.region
-                    .entry(o.clone())
-                    .or_default()
-                    .insert(self.ranks[i]);
-            }
-        }
-        self.unowned.clear();
-        for i in fresh {
-            let Some(owner) = &self.affine[i] else {
-                self.unowned.insert(self.ranks[i], i);
-                continue;
-            };
-            let next = self.groups.len();
-            let g = *self.group_of.entry(owner.clone()).or_insert(next);
-            if g == next {
-                self.groups.push(Vec::new());
-            }
-            self.groups[g].push(i);
-        }
-        for q in &mut self.groups {
-            match costs {
-                // Ascending cost, ties by descending index: pop() gives the
-                // costliest, the lowest index first among equals.
-                Some(costs) if opts.costliest_first => {
-                    q.sort_unstable_by_key(|&i| (costs[i], std::cmp::Reverse(i)))
-                }
-                _ => q.sort_unstable_by(|a, b| b.cmp(a)),
-            }
-        }
+        self.queues.sort(&view, prev, opts);
     }
-
     fn retry_for(&self, c: &Name) -> Option<usize> {
         self.retry.iter().position(|&i| {
             self.tiles[i].state == State::Retry
@@ -443,16 +253,12 @@ impl Frame {
     /// Whether client `c` has work here that is not another client's:
     /// a tile to retry, one of its own, or one nobody has.
     fn has_own_work_for(&self, c: &Name) -> bool {
-        self.retry_for(c).is_some()
-            || !self.unowned.is_empty()
-            || self
-                .group_of
-                .get(c)
-                .is_some_and(|&g| !self.groups[g].is_empty())
+        self.retry_for(c).is_some() || self.queues.has_own(c)
     }
 
-    /// The tile client `c` should render next, taken out of its queue.
-    fn pick(&mut self, c: &Name, affinity: bool, rng: &mut Rng) -> Option<usize> {
+    /// The tile client `c` should render next, taken out of its queue:
+    /// a tile to retry first, else a fresh one by the policy.
+    fn pick(&mut self, c: &Name, rng: &mut Rng) -> Option<usize> {
         while let Some(&i) = self.retry.front() {
             if self.tiles[i].state == State::Retry {
                 break;
@@ -465,162 +271,28 @@ impl Frame {
         if self.fresh_left == 0 {
             return None;
         }
-        if !affinity {
-            if self.pool.is_empty() {
-                return None;
-            }
-            let k = rng.below(self.pool.len() as u32) as usize;
-            return Some(self.pool.swap_remove(k));
-        }
-        if let Some(&g) = self.group_of.get(c) {
-            if let Some(i) = self.groups[g].pop() {
-                return Some(i);
-            }
-        }
-        // Beyond its own tiles: first those nobody had, else any other
-        // client's; of those the one showing most of what this client
-        // rendered before, then the one nearest to its region, so that
-        // regions stay compact and only their borders move.
-        self.take_for(c)
+        self.queues.pick(c, rng)
     }
 
-    /// The tile beyond its own that client `c` takes, taken out of its
-    /// queue. A client without a region yet takes the tile farthest from
-    /// every other client's region, so that clients starting together grow
-    /// their regions from far apart.
-    fn take_for(&mut self, c: &Name) -> Option<usize> {
-        fn distance(set: &BTreeSet<u32>, r: u32) -> u32 {
-            let below = set.range(..=r).next_back().map(|&b| r - b);
-            let above = set.range(r..).next().map(|&a| a - r);
-            below.into_iter().chain(above).min().unwrap_or(u32::MAX)
-        }
-        let own = self.region.get(c).filter(|r| !r.is_empty());
-        let others = || -> BTreeSet<u32> {
-            self.region
-                .iter()
-                .filter(|(n, _)| *n != c)
-                .flat_map(|(_, r)| r.iter().copied())
-                .collect()
-        };
-        if !self.unowned.is_empty() {
-            // Nobody's tiles show nothing anyone rendered: by position
-            // alone. Nearest to the client's newest tile, found in the
-            // ordered set (the first frame takes every tile this way).
-            let rank = match own {
-                Some(own) => {
-                    let at = self
-                        .last
-                        .get(c)
-                        .copied()
-                        .unwrap_or_else(|| own.iter().copied().next().unwrap_or(0));
-                    let below = self.unowned.range(..=at).next_back().map(|(&r, _)| r);
-                    let above = self.unowned.range(at..).next().map(|(&r, _)| r);
-                    match (below, above) {
-                        (Some(b), Some(a)) if a - at < at - b => a,
-                        (Some(b), _) => b,
-                        (None, a) => a?,
-                    }
-                }
-                None => {
-                    let others = others();
-                    *self
-                        .unowned
-                        .keys()
-                        .min_by_key(|&&r| (u32::MAX - distance(&others, r), r))?
-                }
-            };
-            return self.unowned.remove(&rank);
-        }
-        let votes = |i: usize| {
-            self.votes[i]
-                .iter()
-                .find(|(n, _)| n == c)
-                .map_or(0, |&(_, v)| v)
-        };
-        let others = if own.is_none() {
-            others()
-        } else {
-            BTreeSet::new()
-        };
-        let (g, k) = (0..self.groups.len())
-            .flat_map(|g| (0..self.groups[g].len()).map(move |k| (g, k)))
-            .min_by_key(|&(g, k)| {
-                let i = self.groups[g][k];
-                let r = self.ranks[i];
-                // Ties go to the lowest curve position.
-                match own {
-                    Some(own) => (std::cmp::Reverse(votes(i)), distance(own, r), r),
-                    None => (std::cmp::Reverse(0), u32::MAX - distance(&others, r), r),
-                }
-            })?;
-        Some(self.groups[g].remove(k))
-    }
-
-    /// Tile `i`, just picked for client `c`, with the fresh tiles of its
-    /// aligned block that sit in the same queue, while the frame has many
-    /// fresh tiles left (see [`BLOCK_GUIDE`]): one assignment, one
-    /// message each way, for what would otherwise be up to 16. The block
-    /// shrinks as the frame's fresh tiles run out, so that the last tiles
-    /// still balance the clients' loads one by one. Blocks are made of
-    /// tiles that the previous frame rendered without a miss, unless the
-    /// camera cut since (see [`Frame::sort_fresh`]), or of any tiles for a
-    /// client that holds the whole model (`holds_model`), which misses
-    /// nothing: there a tile is quick and its messages weigh; where voxels
-    /// were missing, tiles are slow and uneven, and they go one by one so
-    /// that the clients share them evenly (in blocks, a cold walk's first
-    /// frames would go out before any hit told where each client's content
-    /// lies, and fetch more: `experiments/latency-hiding.toml`). Only a tile
-    /// of `c`'s own queue or of nobody's comes with a block: a tile taken
-    /// from another client's queue comes alone, as that client's cache
-    /// holds what it shows. Returns the tiles, row by row, taken out of
-    /// their queues.
+    /// Tile `i`, just picked for client `c`, with the tiles the policy
+    /// sends along in the same assignment, row by row.
     fn block(
         &mut self,
         i: usize,
         c: &Name,
         clients: usize,
-        max_px: u32,
+        opts: &SchedulerOptions,
         holds_model: bool,
     ) -> Vec<usize> {
-        if self.tiles[i].state != State::Fresh
-            || !(holds_model || self.warm[i])
-            || self.affine[i].as_ref().is_some_and(|o| o != c)
-        {
-            return vec![i];
-        }
-        let ts = self.grid.tile_size;
-        let mut side = 1;
-        while side * 2 * ts <= max_px {
-            side *= 2;
-        }
-        while side > 1 {
-            let n = (side * side) as usize;
-            if self.fresh_left >= n * clients.max(1) * BLOCK_GUIDE {
-                let block = self.grid.block_of(i, side);
-                let queue = &self.affine[i];
-                if block.iter().all(|&j| {
-                    j == i
-                        || (self.tiles[j].state == State::Fresh
-                            && (holds_model || self.warm[j])
-                            && self.affine[j] == *queue)
-                }) {
-                    // Out of the queue they share with `i`: `c`'s group, or
-                    // nobody's.
-                    let group = queue.as_ref().and_then(|o| self.group_of.get(o)).copied();
-                    for &j in block.iter().filter(|&&j| j != i) {
-                        match group {
-                            Some(g) => self.groups[g].retain(|&k| k != j),
-                            None => {
-                                self.unowned.remove(&self.ranks[j]);
-                            }
-                        }
-                    }
-                    return block;
-                }
-            }
-            side /= 2;
-        }
-        vec![i]
+        let view = FrameView {
+            grid: &self.grid,
+            camera: &self.camera,
+            tiles: &self.tiles,
+            owners: &self.owners,
+            fresh_left: self.fresh_left,
+            first_guide: self.first_guide.as_deref(),
+        };
+        self.queues.block(i, c, &view, clients, opts, holds_model)
     }
 
     fn median_time(&mut self) -> u64 {
@@ -705,6 +377,7 @@ enum Out {
 
 struct Scheduler {
     opts: SchedulerOptions,
+    policy: &'static dyn Policy,
     rng: Rng,
     /// Clients in the order they first asked for work.
     clients: Vec<(Name, ClientState)>,
@@ -719,6 +392,7 @@ impl Scheduler {
     fn new(opts: SchedulerOptions) -> Scheduler {
         Scheduler {
             rng: Rng::new(opts.seed),
+            policy: policy::of(opts.policy),
             opts,
             clients: Vec::new(),
             frames: BTreeMap::new(),
@@ -764,7 +438,7 @@ impl Scheduler {
             }
             return;
         }
-        let mut frame = Frame::new(f, self.opts.tile_size);
+        let mut frame = Frame::new(f, self.opts.tile_size, self.policy);
         if self.prev.is_none() {
             frame.first_guide = self
                 .frames
@@ -798,15 +472,17 @@ impl Scheduler {
                 if state.credits == 0 {
                     continue;
                 }
-                // With affinity, a client's own tiles come first, in the
-                // oldest frame that has some, before another client's in an
+                // Where tiles belong to clients (the affinity policy), a
+                // client's own tiles come first, in the oldest frame that
+                // has some, before another client's in an
                 // older frame: taking another's tile fetches what its cache
                 // lacks. A client with no tiles of its own in any open frame
                 // releases the next frame early, so that it works ahead on
                 // its own region rather than finish the others' (it still
                 // takes one of theirs now, and theirs again once it has run
                 // through its own in the next frame too).
-                let own = if self.opts.affinity {
+                let claims = self.policy.claims_tiles();
+                let own = if claims {
                     self.frames.values().position(|f| f.has_own_work_for(node))
                 } else {
                     None
@@ -820,7 +496,7 @@ impl Scheduler {
                         // taken from another's region fetches what its cache
                         // lacks, the more so the more tiles clients hold
                         // ahead (`experiments/affinity-inside.toml`).
-                        if self.opts.affinity {
+                        if claims {
                             let held: usize = self.frames.values().map(|f| f.held_by(node)).sum();
                             if held > 1 {
                                 continue;
@@ -836,7 +512,7 @@ impl Scheduler {
                 let Some(frame) = self.frames.values_mut().nth(at) else {
                     continue;
                 };
-                if self.opts.affinity
+                if claims
                     && own.is_none()
                     && at + 1 == open
                     && !frame.announced
@@ -845,22 +521,14 @@ impl Scheduler {
                     frame.announced = true;
                     out.push(Out::Assigned(frame.number));
                 }
-                let Some(i) = frame.pick(node, self.opts.affinity, &mut self.rng) else {
+                let Some(i) = frame.pick(node, &mut self.rng) else {
                     continue;
                 };
                 state.credits -= 1;
                 progress = true;
-                let tiles = if self.opts.affinity {
-                    frame.block(i, node, n, self.opts.max_block_px, state.holds_model)
-                } else {
-                    vec![i]
-                };
+                let tiles = frame.block(i, node, n, &self.opts, state.holds_model);
                 for &i in &tiles {
-                    if self.opts.affinity {
-                        let rank = frame.ranks[i];
-                        frame.region.entry(node.clone()).or_default().insert(rank);
-                        frame.last.insert(node.clone(), rank);
-                    }
+                    frame.queues.handed_out(node, i);
                     let t = &mut frame.tiles[i];
                     if t.state == State::Fresh {
                         frame.fresh_left -= 1;
@@ -1019,9 +687,11 @@ impl Scheduler {
             .map(|(n, _)| n.clone())
             .collect();
         owners.holds_model = BoundedVec::new(whole).unwrap_or_default();
-        // Affinity at work: how many tiles their affinity client rendered.
+        // The policy at work: how many tiles their predicted client
+        // rendered.
         let kept = frame
-            .affine
+            .queues
+            .predicted()
             .iter()
             .zip(&frame.owners)
             .filter(|(a, b)| a.is_some() && a == b)
@@ -1221,7 +891,10 @@ async fn send(s: &mut Scheduler, mb: &Mailbox, o: Out) {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::scheduler::policy::tests::{options, walk_camera};
+    use crate::scheduler::prefetch::recipients;
     use dray_protocol::examples::one_of_each;
+    use dray_protocol::TileStats;
 
     /// The start of a frame of 4 × 2 tiles: the protocol's example.
     fn start() -> FrameStart {
@@ -1240,27 +913,13 @@ mod tests {
     }
 
     fn frame() -> Frame {
-        Frame::new(start(), 32)
-    }
-
-    /// Affinity, costliest first, blocks of up to 4 × 4 tiles of 32.
-    fn options() -> SchedulerOptions {
-        SchedulerOptions {
-            tile_size: 32,
-            affinity: true,
-            costliest_first: true,
-            max_block_px: 128,
-            tile_deadline: Duration::from_secs(10),
-            display: crate::names::display(),
-            assigner: crate::names::assigner(),
-            prefetcher: None,
-            seed: 1,
-        }
+        Frame::new(start(), 32, policy::of(TilePolicy::Affinity))
     }
 
     #[test]
     fn before_any_frame_completes_the_next_follows_the_one_in_flight() {
-        let mut s = Scheduler::new(options());
+        let opts = options();
+        let mut s = Scheduler::new(opts.clone());
         let mut out = Vec::new();
         s.frame_start(
             FrameStart {
@@ -1295,75 +954,142 @@ mod tests {
             },
             &mut out,
         );
-        let f1 = &s.frames[&1];
-        assert_eq!(f1.affine, expected, "each tile to its client in frame 0");
-        assert!(f1.unowned.is_empty());
-        assert!(f1.warm.iter().all(|&w| !w), "nothing known warm yet");
+        let f1 = s.frames.get_mut(&1).expect("frame 1 open");
+        assert_eq!(
+            f1.queues.predicted(),
+            expected,
+            "each tile to its client in frame 0"
+        );
+        let stranger = Name::new("client-z").unwrap();
+        assert!(!f1.has_own_work_for(&stranger), "no tile is nobody's");
+        for (i, c) in expected.iter().enumerate() {
+            let c = c.as_ref().expect("every tile has a client");
+            assert_eq!(
+                f1.block(i, c, 2, &opts, false),
+                vec![i],
+                "nothing known warm yet: no blocks"
+            );
+        }
         // The very first frame had nothing to go by.
-        assert!(s.frames[&0].affine.iter().all(Option::is_none));
+        assert!(s.frames[&0].queues.predicted().iter().all(Option::is_none));
     }
 
-    /// The last frame before `f`, through `camera`, every tile rendered
-    /// without a miss, its owners alternating in an order no region grown
-    /// along the curve would give, its costs rising with the tile index,
-    /// its hits 5 units in front of `camera`.
-    fn previous(f: &Frame, camera: Camera) -> Previous {
-        let n = f.tiles.len();
-        let basis = kernel_camera(&camera, f.grid.width, f.grid.height).basis();
-        let names = [
-            Name::new("client-b").unwrap(),
-            Name::new("client-a").unwrap(),
-        ];
-        Previous {
-            number: f.number - 1,
+    /// Drives `s` through frame `number` seen through `camera` on a
+    /// 256 × 128 image: every tile handed out to the clients that asked,
+    /// then reported with hits on the plane z = 0 (a wall the camera looks
+    /// at). Returns each tile's client in its first assignment and what
+    /// the scheduler sent the prefetcher when the frame completed.
+    fn run_frame(s: &mut Scheduler, number: u64, camera: Camera) -> (Vec<Name>, TileOwners) {
+        let mut out = Vec::new();
+        let f = FrameStart {
+            frame: number,
             camera,
-            grid: f.grid,
-            costs: (0..n as u64).map(|i| 100 + i).collect(),
-            owners: (0..n).map(|i| Some(names[i % 2].clone())).collect(),
-            hits: (0..n)
-                .map(|i| {
-                    let r = f.grid.rect(i);
+            width: 256,
+            height: 128,
+            ..start()
+        };
+        let grid = TileGrid::new(f.width, f.height, s.opts.tile_size);
+        let basis = kernel_camera(&camera, f.width, f.height).basis();
+        s.frame_start(f, &mut out);
+        s.dispatch(&mut out);
+        let mut first: Vec<Option<Name>> = vec![None; grid.count()];
+        let mut owners = None;
+        for o in std::mem::take(&mut out) {
+            let Out::Assign { node, msg, .. } = o else {
+                continue;
+            };
+            let tiles = grid.tiles_of(&msg.tile).expect("the frame's tiles");
+            for &i in &tiles {
+                first[i].get_or_insert_with(|| node.clone());
+            }
+            // Hits at the centres of the assignment's tiles.
+            let hits: Vec<[f32; 3]> = tiles
+                .iter()
+                .map(|&i| {
+                    let r = grid.rect(i);
                     let d = basis.direction(r.x + r.w / 2, r.y + r.h / 2);
-                    vec![basis.eye + d * 5.0]
+                    (basis.eye + d * (basis.eye.z / -d.z)).to_array()
                 })
-                .collect(),
-            missed: vec![false; n],
+                .collect();
+            let report = TileReport {
+                client: node.clone(),
+                frame: number,
+                tile: msg.tile,
+                stats: TileStats {
+                    time_us: 100 * tiles.len() as u64,
+                    ..TileStats::default()
+                },
+                hits: BoundedVec::new(hits).expect("few hits"),
+            };
+            s.report(&node, report, &mut out);
+            for o in std::mem::take(&mut out) {
+                if let Out::Done(_, o) = o {
+                    owners = Some(o);
+                }
+            }
         }
+        let first = first
+            .into_iter()
+            .map(|c| c.expect("every tile handed out"))
+            .collect();
+        (first, owners.expect("the frame completed"))
     }
 
     #[test]
-    fn after_a_cut_each_tile_stays_with_its_client_in_index_order_and_cold() {
-        let ahead = Camera {
-            eye: [0.0, 0.0, 5.0],
-            look: [0.0, 0.0, 0.0],
-            up: [0.0, 1.0, 0.0],
-            fov_y_deg: 50.0,
-        };
-        let opts = options();
-        let mut f = frame();
-        f.camera = ahead;
-        // The same view: the last frame guides this one. Its tiles are
-        // warm (blocks may go out) and each queue gives its costliest first.
-        f.sort_fresh(Some(&previous(&f, ahead)), &opts);
-        assert!(f.warm.iter().all(|&w| w));
-        for q in &f.groups {
-            let costliest = q.iter().copied().max();
-            assert_eq!(q.last().copied(), costliest, "{q:?}");
+    fn the_prefetchers_recipients_are_the_clients_the_scheduler_assigns() {
+        let mut s = Scheduler::new(SchedulerOptions {
+            max_block_px: 64,
+            ..options()
+        });
+        for i in 0..3 {
+            s.request_work(
+                crate::names::client(i),
+                RequestWork {
+                    slots: 1000,
+                    holds_model: false,
+                },
+            );
         }
-        // The last frame looked a quarter turn away.
-        let aside = Camera {
-            look: [10.0, 0.0, 5.0],
-            ..ahead
+        // Walking towards the wall (sectors), sliding along it
+        // (reprojection), then a quarter turn (a cut: each tile stays with
+        // its client).
+        let slide = Camera {
+            eye: [1.0, 0.0, 5.0],
+            look: [1.0, 0.0, 0.0],
+            ..walk_camera(5.0)
         };
-        let prev = previous(&f, aside);
-        f.sort_fresh(Some(&prev), &opts);
-        assert_eq!(f.affine, prev.owners, "each tile with its last client");
-        assert!(f.warm.iter().all(|&w| !w), "no blocks");
-        for q in &f.groups {
-            let lowest = q.iter().copied().min();
-            assert_eq!(q.last().copied(), lowest, "index order: {q:?}");
+        let turned = Camera {
+            look: [11.0, 0.0, 5.0],
+            ..slide
+        };
+        let path = [walk_camera(6.0), walk_camera(5.0), slide, turned];
+        let (_, mut owners) = run_frame(&mut s, 0, path[0]);
+        let grid = TileGrid::new(256, 128, 32);
+        let mut rules = Vec::new();
+        for (k, pair) in path.windows(2).enumerate() {
+            let (then, now) = (pair[0], pair[1]);
+            let hinted: Vec<Option<Name>> =
+                recipients(&owners, Some(&then), &now, &grid, TilePolicy::Affinity)
+                    .into_iter()
+                    .map(|c| owners.clients.as_slice().get(c as usize).cloned())
+                    .collect();
+            let prev = s.prev.as_ref().expect("a frame completed");
+            let basis = kernel_camera(&now, 256, 128).basis();
+            let last = prev.last_frame();
+            let p = policy::predict_owners(TilePolicy::Affinity, &grid, &basis, &last);
+            let before: Vec<Option<&Name>> = prev.owners.iter().map(Option::as_ref).collect();
+            let then_basis = last.camera.expect("the scheduler knows its cameras");
+            let hits = prev.hits.iter().flatten().copied();
+            let by_sectors =
+                policy::sectors::assign(&grid, &then_basis, &basis, hits, &before).is_some();
+            rules.push((p.guides, by_sectors));
+            let (assigned, next) = run_frame(&mut s, k as u64 + 1, now);
+            let assigned: Vec<Option<Name>> = assigned.into_iter().map(Some).collect();
+            assert_eq!(hinted, assigned, "frame {}", k + 1);
+            owners = next;
         }
-        assert_eq!(f.groups.iter().map(Vec::len).sum::<usize>(), f.tiles.len());
+        // Which rule decided each step: (no cut, by sectors).
+        assert_eq!(rules, [(true, true), (true, false), (false, false)]);
     }
 
     #[test]
