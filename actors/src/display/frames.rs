@@ -224,6 +224,12 @@ impl Frames {
         self.next_out
     }
 
+    /// The pixels `frame` is being assembled in.
+    #[cfg(test)]
+    pub fn pending_rgba(&self, frame: u64) -> Option<&[[u8; 4]]> {
+        self.pending.get(&frame).map(|f| f.rgba.as_slice())
+    }
+
     /// Puts a tile's pixels in place (first wins per pixel).
     /// Returns how many new pixels it brought.
     pub fn add_tile(&mut self, t: &TileDone, now: Instant) -> Result<usize, TileRejected> {

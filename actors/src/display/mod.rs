@@ -29,6 +29,18 @@
 //! is logged once and counted in the summary. Memory holds only the outstanding frames
 //! (and the shown images when `keep_frames`).
 //!
+//! Shape: `state::Display` owns what the display decides (the frames
+//! outstanding, the cameras sent and the interactive camera, the clocks
+//! of the run, the summary); its handlers (a tile, a frame done, a voxel
+//! lost, a Shutdown, a ping, the viewer's moves, the deadline, the stop
+//! future, and the loop's word that a camera left or did not) push
+//! effects (`state::Out`: send a camera, report a tile to the scheduler,
+//! answer a ping, show a frame, end the run); [`run_display_with_viewer`]
+//! receives, calls the handler and carries the effects out: sends, the
+//! viewer, `metrics.csv`, and the frame files, written off the loop at
+//! most `MAX_PENDING_WRITES` at once, and hands a shown image back for
+//! the summary or the next frame's pixels.
+//!
 //! [`CameraUpdate`]: dray_protocol::CameraUpdate
 //! [`TileDone`]: dray_protocol::TileDone
 //! [`FrameDone`]: dray_protocol::FrameDone
@@ -38,6 +50,7 @@ mod frames;
 mod metrics;
 pub mod moves;
 pub mod path;
+mod state;
 pub mod web;
 
 pub use frames::{FrameImage, TileRejected};
@@ -47,10 +60,10 @@ pub use path::{CameraPath, Keyframe, PathError};
 pub use web::WebViewer;
 
 use crate::ActorError;
-use dray_protocol::{Address, CameraUpdate, Message, Ping, TileReport};
+use dray_protocol::{Address, Message};
 use dray_runtime::{Delivery, LinkMeter, Mailbox, SendError};
-use frames::{Frames, ReadyFrame};
 use metrics::CsvLog;
+use state::{Display, End, Out};
 use std::future::Future;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -218,231 +231,6 @@ fn write_frame_files(
     Ok(())
 }
 
-struct Display {
-    opts: DisplayOptions,
-    frames: Frames,
-    /// Cameras sent so far.
-    sent: u64,
-    output: Option<Output>,
-    viewer: Option<WebViewer>,
-    summary: DisplaySummary,
-    /// When the first camera went out.
-    started: Option<Instant>,
-    /// When the last frame was shown.
-    last_shown: Option<Instant>,
-    /// When to try sending cameras again after a failed send.
-    retry_at: Option<Instant>,
-    /// Interactive: the user's camera now.
-    current: dray_protocol::Camera,
-    /// Interactive: the step of a translation ([`moves::step_for`]).
-    step: f32,
-    /// Interactive: the moves the viewer takes.
-    moves: Option<tokio::sync::mpsc::Receiver<Move>>,
-    /// Interactive: cameras sent since the last move (or the start).
-    since_move: u64,
-    /// Interactive: time spent waiting for a move with nothing in flight,
-    /// left out of the frame times and the run's time.
-    idle: Duration,
-    /// The display's own link, charged to each frame shown.
-    links: LinkMeter,
-}
-
-impl Display {
-    fn ahead(&self) -> usize {
-        self.opts.frames_ahead.max(1)
-    }
-
-    fn total(&self) -> u64 {
-        self.opts.cameras.len() as u64
-    }
-
-    /// Whether another camera is due (ignoring `frames_ahead`).
-    fn more(&self) -> bool {
-        if self.opts.interactive {
-            self.since_move < IDLE_FRAMES.max(self.ahead() as u64)
-        } else {
-            self.sent < self.total()
-        }
-    }
-
-    /// Applies `m` and every move already waiting behind it.
-    fn take_moves(&mut self, m: Move) {
-        let mut m = Some(m);
-        let mut n = 0;
-        while let Some(mv) = m {
-            self.current = mv.apply(&self.current, self.step);
-            n += 1;
-            m = self.moves.as_mut().and_then(|rx| rx.try_recv().ok());
-        }
-        debug!(moves = n, camera = ?self.current, "camera moved");
-        self.since_move = 0;
-    }
-
-    /// Sends cameras until `frames_ahead` frames are outstanding. When the
-    /// assigner cannot be reached now, the camera is retried later (on its
-    /// node's PeerUp, or after [`SEND_RETRY`]).
-    async fn send_cameras(&mut self, mb: &Mailbox) -> Result<(), ActorError> {
-        while self.more() && self.frames.outstanding() < self.ahead() {
-            let seq = self.sent;
-            let camera = if self.opts.interactive {
-                self.current
-            } else {
-                self.opts.cameras[seq as usize]
-            };
-            let r = mb
-                .send(
-                    &self.opts.assigner,
-                    Message::CameraUpdate(CameraUpdate { seq, camera }),
-                )
-                .await;
-            match r {
-                Ok(()) => {}
-                Err(SendError::Protocol(e)) => {
-                    return Err(ActorError::Send {
-                        actor: ACTOR.into(),
-                        to: self.opts.assigner.to_string(),
-                        source: SendError::Protocol(e),
-                    })
-                }
-                Err(e) => {
-                    warn!(frame = seq, "camera not sent, will retry: {e}");
-                    self.retry_at = Some(Instant::now() + SEND_RETRY);
-                    return Ok(());
-                }
-            }
-            debug!(frame = seq, "camera sent");
-            self.retry_at = None;
-            if self.opts.interactive && self.frames.outstanding() == 0 {
-                // Resuming after an idle pause: the next frame's time
-                // counts from now, not from the last frame shown.
-                if let Some(last) = self.last_shown {
-                    let now = Instant::now();
-                    self.idle += now.saturating_duration_since(last);
-                    self.last_shown = Some(now);
-                }
-            }
-            self.frames.open(seq);
-            if self.started.is_none() {
-                self.started = Some(Instant::now());
-            }
-            self.sent += 1;
-            self.since_move += 1;
-        }
-        Ok(())
-    }
-
-    /// Shows every frame that is ready, in order, after `first` if given.
-    async fn show_ready(&mut self, first: Option<ReadyFrame>) -> Result<(), ActorError> {
-        let mut group: Vec<ReadyFrame> = first.into_iter().collect();
-        while let Some(ready) = self.frames.pop_ready() {
-            group.push(ready);
-        }
-        let Some(latest) = group.iter().map(|r| r.completed_at).max() else {
-            return Ok(());
-        };
-        // Shown when complete, but never before the frame before it; frames
-        // shown together share the time since the last one shown.
-        let since = self.last_shown.or(self.started).unwrap_or(latest);
-        let shown = latest.max(since);
-        let frame_ms = (shown - since).as_secs_f64() * 1e3 / group.len() as f64;
-        self.last_shown = Some(shown);
-        for ready in group {
-            self.show(ready, frame_ms).await?;
-        }
-        Ok(())
-    }
-
-    async fn show(&mut self, ready: ReadyFrame, frame_ms: f64) -> Result<(), ActorError> {
-        let ReadyFrame {
-            image,
-            mut stats,
-            missing_pixels,
-            ..
-        } = ready;
-        stats.link.display = self.links.take().display;
-        let m = FrameMetrics::compute(image.frame, &stats, frame_ms);
-        if missing_pixels > 0 {
-            warn!(
-                frame = image.frame,
-                missing_pixels, "frame shown with pixels missing"
-            );
-            self.summary.missing_pixels += missing_pixels as u64;
-        }
-        info!(
-            frame = m.frame,
-            frame_ms = format!("{:.1}", m.frame_ms),
-            rays = m.rays,
-            misses = m.misses,
-            "frame shown"
-        );
-        let (w, h) = (self.opts.width, self.opts.height);
-        if let Some(v) = &self.viewer {
-            v.publish(w, h, &image, &m);
-        }
-        let keep = self.opts.keep_frames;
-        let mut image = image;
-        if let Some(out) = &mut self.output {
-            let path = out.csv.path().to_path_buf();
-            out.csv.append(&m).map_err(|e| io_err(&path, e))?;
-            if out.saves_frames() {
-                let to_write = if keep {
-                    image.clone()
-                } else {
-                    std::mem::replace(
-                        &mut image,
-                        FrameImage {
-                            frame: m.frame,
-                            rgba: Vec::new(),
-                            depth: None,
-                            primid: None,
-                        },
-                    )
-                };
-                out.write(w, h, to_write).await?;
-            }
-        }
-        if keep {
-            self.summary.images.push(image);
-        } else {
-            self.frames.recycle(image.rgba);
-        }
-        self.summary.push(m);
-        Ok(())
-    }
-
-    /// Waits for the frame files being written; a failure is logged (the
-    /// run is ending anyway).
-    async fn flush(&mut self) {
-        if let Some(out) = &mut self.output {
-            if let Err(e) = out.flush().await {
-                warn!("writing the last frames: {e}");
-            }
-        }
-    }
-
-    fn finish(mut self, stopped: Option<String>) -> DisplaySummary {
-        let seconds = match (self.started, self.last_shown) {
-            (Some(a), Some(b)) => (b - a).saturating_sub(self.idle).as_secs_f64(),
-            _ => 0.0,
-        };
-        if self.opts.interactive {
-            // Stopping is how an interactive run ends.
-            if let Some(why) = &stopped {
-                info!("interactive run over: {why}");
-            }
-            self.summary.frames_requested = self.summary.frames.len();
-            self.summary.complete = true;
-        } else {
-            self.summary.complete = self.summary.frames.len() == self.opts.cameras.len();
-        }
-        if !self.summary.complete {
-            self.summary.stopped_early = stopped.or(Some("stopped".into()));
-        }
-        self.summary.finish(seconds);
-        self.summary
-    }
-}
-
 /// Runs the display until every camera's frame is shown (or a Shutdown;
 /// interactive: until a Shutdown).
 pub async fn run_display(mb: Mailbox, opts: DisplayOptions) -> Result<DisplaySummary, ActorError> {
@@ -512,7 +300,7 @@ pub async fn run_display_with_viewer(
         .as_deref()
         .map(|dir| Output::create(dir, opts.save_frames))
         .transpose()?;
-    let (viewer, moves) = match viewer {
+    let (viewer, mut moves) = match viewer {
         Some((v, moves)) => (Some(v), moves),
         None => (None, None),
     };
@@ -522,48 +310,24 @@ pub async fn run_display_with_viewer(
             message: "interactive mode needs an interactive web viewer".into(),
         });
     }
-    let current = opts
-        .cameras
-        .first()
-        .copied()
-        .unwrap_or(dray_protocol::Camera {
-            eye: [0.0; 3],
-            look: [0.0, 0.0, 1.0],
-            up: [0.0, 1.0, 0.0],
-            fov_y_deg: 45.0,
-        });
-    let mut d = Display {
-        frames: Frames::new(opts.width, opts.height),
-        summary: DisplaySummary::new(
-            opts.width,
-            opts.height,
-            if opts.interactive {
-                0
-            } else {
-                opts.cameras.len()
-            },
-        ),
-        opts,
-        sent: 0,
+    let mut links = LinkMeter::new(mb.handle().bus().clone());
+    let mut sink = Sink {
+        assigner: opts.assigner.clone(),
+        scheduler: opts.scheduler.clone(),
+        width: opts.width,
+        height: opts.height,
         output,
         viewer,
-        started: None,
-        last_shown: None,
-        retry_at: None,
-        step: moves::step_for(&current),
-        current,
-        moves,
-        since_move: 0,
-        idle: Duration::ZERO,
-        links: LinkMeter::new(mb.handle().bus().clone()),
     };
-    if d.opts.cameras.is_empty() {
+    let mut d = Display::new(opts, Box::new(move || links.take().display));
+    if d.opts().cameras.is_empty() {
         return Ok(d.finish(None));
     }
+    let mut out = Vec::new();
 
     // Wait for the assigner's node, still answering a Shutdown.
     let bus = mb.handle().bus().clone();
-    let node = d.opts.assigner.node.clone();
+    let node = sink.assigner.node.clone();
     if node != *bus.node() && !bus.is_connected(&node) {
         info!("waiting for {node}");
         let wait = bus.wait_for_peer(&node);
@@ -571,134 +335,196 @@ pub async fn run_display_with_viewer(
         loop {
             tokio::select! {
                 _ = &mut wait => break,
-                _ = &mut stop => return Ok(d.finish(Some("interrupted".into()))),
+                _ = &mut stop => d.interrupted(&mut out),
                 delivery = mb.recv() => match delivery {
                     None => return Err(ActorError::BusClosed(ACTOR.into())),
                     Some(Delivery::Message { msg: Message::Shutdown(s), .. }) => {
-                        return Ok(d.finish(Some(format!("shutdown: {}", s.reason))));
+                        d.shutdown(&s.reason, &mut out);
                     }
                     Some(Delivery::Message { from, msg: Message::Ping(p) }) => {
-                        let _ = mb.send(&from, Message::Pong(Ping { seq: p.seq })).await;
+                        d.ping(from, p, &mut out);
                     }
                     Some(other) => debug!("before the assigner is up: {other:?}"),
                 },
             }
+            if let Some(end) = sink.carry(&mut d, &mut out, &mb).await? {
+                return sink.end(d, end).await;
+            }
         }
     }
-    d.send_cameras(&mb).await?;
 
-    while d.opts.interactive || d.frames.next_out() < d.total() {
-        // A frame whose report came but whose pixels do not is shown anyway
-        // after a grace time; a camera that could not be sent is retried.
-        let stuck = d.frames.stuck_next().map(|at| at + MISSING_PIXELS_GRACE);
-        let deadline = match (stuck, d.retry_at) {
-            (Some(a), Some(b)) => Some(a.min(b)),
-            (a, b) => a.or(b),
-        };
-        let delivery = tokio::select! {
-            delivery = mb.recv() => delivery,
-            _ = &mut stop => {
-                info!("interrupted");
-                d.flush().await;
-                return Ok(d.finish(Some("interrupted".into())));
-            }
-            m = next_move(&mut d.moves) => {
-                match m {
-                    Some(m) => {
-                        d.take_moves(m);
-                        d.send_cameras(&mb).await?;
-                    }
-                    None => d.moves = None,
-                }
-                continue;
-            }
-            _ = crate::sleep_until_opt(deadline) => {
+    d.advance(&mut out);
+    loop {
+        if let Some(end) = sink.carry(&mut d, &mut out, &mb).await? {
+            return sink.end(d, end).await;
+        }
+        let deadline = d.deadline();
+        tokio::select! {
+            delivery = mb.recv() => {
                 let now = Instant::now();
-                if stuck.is_some_and(|t| t <= now) {
-                    if let Some(ready) = d.frames.force_next(now) {
-                        d.show_ready(Some(ready)).await?;
-                    }
-                }
-                d.send_cameras(&mb).await?;
-                continue;
-            }
-        };
-        let now = Instant::now();
-        match delivery {
-            None => return Err(ActorError::BusClosed(ACTOR.into())),
-            Some(Delivery::Message { from, msg }) => match msg {
-                Message::TileDone(t) => match d.frames.add_tile(&t, now) {
-                    Ok(0) => d.summary.duplicate_tiles += 1,
-                    Ok(_) => {
-                        // Now the tile is done: the scheduler hears it from
-                        // here, so a tile lost on its way never counts.
-                        let report = TileReport {
-                            client: from.node.clone(),
-                            frame: t.frame,
-                            tile: t.tile,
-                            stats: t.stats,
-                            hits: t.hits,
-                        };
-                        if let Err(e) = mb
-                            .send(&d.opts.scheduler, Message::TileReport(report))
-                            .await
-                        {
-                            debug!(
-                                frame = t.frame,
-                                "cannot report a tile to the scheduler: {e}"
-                            );
+                match delivery {
+                    None => return Err(ActorError::BusClosed(ACTOR.into())),
+                    Some(Delivery::Message { from, msg }) => match msg {
+                        Message::TileDone(t) => d.tile_done(&from, t, now, &mut out),
+                        Message::FrameDone(f) => d.frame_done(&from, f, now),
+                        Message::VoxelLost(l) => d.voxel_lost(&from, l, &mut out),
+                        Message::Shutdown(s) => d.shutdown(&s.reason, &mut out),
+                        Message::Ping(p) => d.ping(from, p, &mut out),
+                        other => debug!(from = %from, "ignored {:?}", other.kind()),
+                    },
+                    Some(Delivery::PeerDown { node, reason }) => {
+                        if node == sink.assigner.node {
+                            warn!("{node} is down: {reason}");
                         }
                     }
-                    Err(why) => {
-                        warn!(from = %from, frame = t.frame, "tile ignored: {why}");
-                        d.summary.tiles_ignored += 1;
+                    Some(Delivery::PeerUp { node, .. }) => debug!("{node} is up"),
+                }
+                d.advance(&mut out);
+            }
+            _ = &mut stop => d.interrupted(&mut out),
+            m = next_move(&mut moves) => match m {
+                Some(m) => {
+                    // Every move already waiting goes into the same camera.
+                    let mut all = vec![m];
+                    while let Some(m) = moves.as_mut().and_then(|rx| rx.try_recv().ok()) {
+                        all.push(m);
                     }
-                },
-                Message::FrameDone(f) => {
-                    if !d.frames.frame_done(f.frame, f.stats, now) {
-                        warn!(from = %from, frame = f.frame, "FrameDone for a frame not outstanding ignored");
-                    }
+                    d.moved(&all, &mut out);
                 }
-                Message::VoxelLost(l) if l.skipped => {
-                    if d.summary.voxel_missing(l.id) {
-                        warn!(voxel = l.id, store = %l.store, client = %from.node, reason = %l.reason,
-                            "no store serves this voxel intact: the frames show it as empty");
-                    }
-                }
-                Message::VoxelLost(l) => {
-                    d.flush().await;
-                    return Err(ActorError::Peer {
-                        actor: ACTOR.into(),
-                        message: format!(
-                            "voxel {} cannot be served intact by {}: {} (reported by {}); the frames cannot complete (clients.corrupt_voxel = \"skip\" renders them without it)",
-                            l.id, l.store, l.reason, from.node
-                        ),
-                    });
-                }
-                Message::Shutdown(s) => {
-                    info!("shutdown: {}", s.reason);
-                    d.flush().await;
-                    return Ok(d.finish(Some(format!("shutdown: {}", s.reason))));
-                }
-                Message::Ping(p) => {
-                    let _ = mb.send(&from, Message::Pong(Ping { seq: p.seq })).await;
-                }
-                other => debug!(from = %from, "ignored {:?}", other.kind()),
+                None => moves = None,
             },
-            Some(Delivery::PeerDown { node, reason }) => {
-                if node == d.opts.assigner.node {
-                    warn!("{node} is down: {reason}");
+            _ = crate::sleep_until_opt(deadline) => d.tick(Instant::now(), &mut out),
+        }
+    }
+}
+
+/// Where the display's effects go: the mailbox's peers, the files and the
+/// web viewer.
+struct Sink {
+    assigner: Address,
+    scheduler: Address,
+    width: u32,
+    height: u32,
+    output: Option<Output>,
+    viewer: Option<WebViewer>,
+}
+
+impl Sink {
+    /// Carries out the effects in `out`, and those the display pushes
+    /// while told how they went; the run's end, if one came.
+    async fn carry(
+        &mut self,
+        d: &mut Display,
+        out: &mut Vec<Out>,
+        mb: &Mailbox,
+    ) -> Result<Option<End>, ActorError> {
+        while !out.is_empty() {
+            for o in std::mem::take(out) {
+                match o {
+                    Out::Camera(u) => {
+                        let seq = u.seq;
+                        match mb.send(&self.assigner, Message::CameraUpdate(u)).await {
+                            Ok(()) => {
+                                debug!(frame = seq, "camera sent");
+                                d.camera_sent(Instant::now(), out);
+                            }
+                            Err(SendError::Protocol(e)) => {
+                                return Err(ActorError::Send {
+                                    actor: ACTOR.into(),
+                                    to: self.assigner.to_string(),
+                                    source: SendError::Protocol(e),
+                                })
+                            }
+                            Err(e) => {
+                                warn!(frame = seq, "camera not sent, will retry: {e}");
+                                d.camera_failed(Instant::now());
+                            }
+                        }
+                    }
+                    Out::Report(report) => {
+                        let frame = report.frame;
+                        if let Err(e) = mb.send(&self.scheduler, Message::TileReport(report)).await
+                        {
+                            debug!(frame, "cannot report a tile to the scheduler: {e}");
+                        }
+                    }
+                    Out::Pong { to, ping } => {
+                        let _ = mb.send(&to, Message::Pong(ping)).await;
+                    }
+                    Out::Show { image, metrics } => {
+                        if let Some(image) = self.show(image, &metrics, d.keeps_frames()).await? {
+                            d.shown(image);
+                        }
+                    }
+                    Out::End(end) => return Ok(Some(end)),
                 }
             }
-            Some(Delivery::PeerUp { node, .. }) => debug!("{node} is up"),
         }
-        d.show_ready(None).await?;
-        d.send_cameras(&mb).await?;
+        Ok(None)
     }
-    if let Some(out) = &mut d.output {
-        out.flush().await?;
+
+    /// Publishes a frame, appends its metrics row and starts writing its
+    /// files (a copy when `keep` holds the image for the summary); the
+    /// image unless the writer took it.
+    async fn show(
+        &mut self,
+        image: FrameImage,
+        metrics: &FrameMetrics,
+        keep: bool,
+    ) -> Result<Option<FrameImage>, ActorError> {
+        let (w, h) = (self.width, self.height);
+        if let Some(v) = &self.viewer {
+            v.publish(w, h, &image, metrics);
+        }
+        let Some(out) = &mut self.output else {
+            return Ok(Some(image));
+        };
+        let path = out.csv.path().to_path_buf();
+        out.csv.append(metrics).map_err(|e| io_err(&path, e))?;
+        if !out.saves_frames() {
+            return Ok(Some(image));
+        }
+        if keep {
+            out.write(w, h, image.clone()).await?;
+            Ok(Some(image))
+        } else {
+            out.write(w, h, image).await?;
+            Ok(None)
+        }
     }
-    Ok(d.finish(None))
+
+    /// Ends the run: waits for the frame files (a failure only fails a
+    /// complete run; a stopped one is ending anyway) and sums it up.
+    async fn end(&mut self, d: Display, end: End) -> Result<DisplaySummary, ActorError> {
+        match end {
+            End::Complete => {
+                if let Some(out) = &mut self.output {
+                    out.flush().await?;
+                }
+                Ok(d.finish(None))
+            }
+            End::Stopped(why) => {
+                self.flush_anyway().await;
+                Ok(d.finish(Some(why)))
+            }
+            End::Failed(message) => {
+                self.flush_anyway().await;
+                Err(ActorError::Peer {
+                    actor: ACTOR.into(),
+                    message,
+                })
+            }
+        }
+    }
+
+    /// Waits for the frame files being written; a failure is logged.
+    async fn flush_anyway(&mut self) {
+        if let Some(out) = &mut self.output {
+            if let Err(e) = out.flush().await {
+                warn!("writing the last frames: {e}");
+            }
+        }
+    }
 }
 
 /// The next move; never when there is no viewer taking them.
