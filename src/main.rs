@@ -6,8 +6,7 @@ use anyhow::{bail, Context, Result};
 use clap::{Parser, Subcommand};
 use dray_actors::cluster::{NodeOutcome, RunOptions};
 use dray_actors::display::path::CameraPath;
-use dray_protocol::Reflective;
-use dray_protocol::Role;
+use dray_protocol::{CameraField, Reflective, Role};
 use dray_scene::db::info::DbInfo;
 use dray_scene::db::verify::verify;
 use dray_scene::db::Database;
@@ -16,7 +15,8 @@ use dray_scene::preprocess::{self, preprocess, PreprocessOptions};
 use dray_scene::progress::Progress;
 use dray_trace::camera::Camera;
 use dray_trace::render::{render_repeated, Isa, Packets, RenderSettings};
-use dray_trace::scene::{RecordingSource, ResidentSource, TopLevel, VoxelSource};
+use dray_trace::report::{render_path, PathReport, ViewReport};
+use dray_trace::scene::{ResidentSource, TopLevel};
 use glam::Vec3;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -72,9 +72,13 @@ enum Command {
     /// Render one view of a database in this process, every voxel loaded.
     Render(RenderArgs),
     /// Check every voxel of a database; exits non-zero naming each bad one.
-    Verify { db: PathBuf },
+    Verify {
+        /// The database directory.
+        db: PathBuf,
+    },
     /// Summarize a database.
     Info {
+        /// The database directory.
         db: PathBuf,
         /// One JSON object instead of text.
         #[arg(long)]
@@ -95,18 +99,20 @@ enum Command {
         /// Triangles of the generated plant.
         #[arg(long, default_value_t = 1_000_000)]
         triangles: u64,
-        /// Frames of the walkthrough.
+        /// Frames of the walkthrough (when the config's camera path is not
+        /// written yet).
         #[arg(long, default_value_t = 90)]
         frames: u32,
     },
     /// Start every node of a config on this machine as separate processes
     /// over QUIC, run the camera path, print a summary, stop them all.
     Cluster {
+        /// The cluster config (TOML).
         config: PathBuf,
         /// Write every frame as a PNG (and the metrics CSV) in this
         /// directory, instead of the config's `display.output`.
-        #[arg(long)]
-        frames: Option<PathBuf>,
+        #[arg(long, value_name = "DIR")]
+        save_frames: Option<PathBuf>,
         /// Kernel instruction set for the clients (default: the best).
         #[arg(long, value_parser = parse_isa)]
         isa: Option<Isa>,
@@ -117,12 +123,13 @@ enum Command {
     /// Run one node of a config (for a cluster across machines, from the
     /// same config file on each).
     Node {
+        /// The cluster config (TOML), the same file on every machine.
         #[arg(long)]
         config: PathBuf,
         /// Display: write every frame as a PNG (and the metrics CSV) in
         /// this directory, instead of the config's `display.output`.
-        #[arg(long)]
-        frames: Option<PathBuf>,
+        #[arg(long, value_name = "DIR")]
+        save_frames: Option<PathBuf>,
         /// scheduler, store, client or display.
         #[arg(long, value_parser = parse_role)]
         role: Role,
@@ -136,11 +143,12 @@ enum Command {
     /// Run every node of a config in this process over the in-process
     /// transport (with the config's link shaping).
     Sim {
+        /// The cluster config (TOML).
         config: PathBuf,
         /// Write every frame as a PNG (and the metrics CSV) in this
         /// directory, instead of the config's `display.output`.
-        #[arg(long)]
-        frames: Option<PathBuf>,
+        #[arg(long, value_name = "DIR")]
+        save_frames: Option<PathBuf>,
         /// Number of clients instead of the config's.
         #[arg(long)]
         clients: Option<u32>,
@@ -155,6 +163,7 @@ enum Command {
     /// `repeat` times; writes points.csv, frames.csv, plots and summary.md
     /// (docs/experiments.md).
     Experiment {
+        /// The experiment file (TOML).
         file: PathBuf,
         /// The results directory (default: results/NAME/YYYYmmdd-HHMMSS).
         #[arg(long, conflicts_with = "resume")]
@@ -169,9 +178,12 @@ enum Command {
     /// Write a camera path (TOML keyframes) that flies from outside a
     /// database's model to deep inside it.
     Walkthrough {
+        /// The database whose model the path flies into.
         db: PathBuf,
+        /// Frames of the path.
         #[arg(long, default_value_t = 90)]
         frames: u32,
+        /// The camera path file to write.
         #[arg(long)]
         out: PathBuf,
     },
@@ -194,6 +206,7 @@ fn parse_role(s: &str) -> Result<Role, String> {
 
 #[derive(clap::Args)]
 struct RenderArgs {
+    /// The database directory.
     db: PathBuf,
     /// Camera position (default: a view of the whole model).
     #[arg(long, value_parser = parse_vec3, allow_hyphen_values = true)]
@@ -201,13 +214,16 @@ struct RenderArgs {
     /// Point looked at (default: the model's centre).
     #[arg(long, value_parser = parse_vec3, allow_hyphen_values = true)]
     look: Option<Vec3>,
+    /// Up direction of the image.
     #[arg(long, value_parser = parse_vec3, default_value = "0,1,0", allow_hyphen_values = true)]
     up: Vec3,
     /// Vertical field of view in degrees.
     #[arg(long, default_value_t = 50.0)]
     fov: f32,
+    /// Image width in pixels.
     #[arg(long, default_value_t = 640)]
     width: u32,
+    /// Image height in pixels.
     #[arg(long, default_value_t = 480)]
     height: u32,
     /// Shaded image (PNG).
@@ -273,87 +289,6 @@ struct RenderArgs {
     working_set: bool,
 }
 
-/// `dray render --path`: every camera of a path, once each, everything
-/// resident; the one-process figure the cluster's frame rate is compared
-/// with.
-fn render_path(
-    a: &RenderArgs,
-    path: &Path,
-    top: &TopLevel,
-    source: &ResidentSource,
-    settings: &RenderSettings,
-    load_seconds: f64,
-) -> Result<()> {
-    let cameras = CameraPath::load(path)
-        .with_context(|| format!("camera path {}", path.display()))?
-        .cameras();
-    // Recording costs a flag test per voxel entered: only when asked.
-    let mut recorder = a
-        .working_set
-        .then(|| RecordingSource::new(source, source.voxel_count()));
-    let mut working_sets = Vec::new();
-    let start = std::time::Instant::now();
-    let mut rays = 0u64;
-    let mut frame_seconds = Vec::with_capacity(cameras.len());
-    for c in &cameras {
-        let camera = dray_actors::settings::kernel_camera(c, a.width, a.height);
-        let frame = match &mut recorder {
-            Some(r) => {
-                let f = dray_trace::render::render(top, r, &camera, settings);
-                let bytes: usize = r
-                    .take()
-                    .iter()
-                    .filter_map(|&id| source.voxel(id))
-                    .map(|v| v.bytes)
-                    .sum();
-                working_sets.push(bytes);
-                f
-            }
-            None => dray_trace::render::render(top, source, &camera, settings),
-        }
-        .map_err(|id| anyhow::anyhow!("voxel {id} was not loaded"))?;
-        let s = &frame.stats;
-        rays += s.primary_rays + s.shadow_rays + s.reflection_rays;
-        frame_seconds.push(s.seconds);
-    }
-    let seconds = start.elapsed().as_secs_f64();
-    let fps = cameras.len() as f64 / seconds;
-    println!(
-        "{} frames of {}x{} on {} thread(s) in {seconds:.2} s: {fps:.2} frames/s, {:.2} Mrays/s (loaded in {load_seconds:.2} s)",
-        cameras.len(),
-        a.width,
-        a.height,
-        settings.threads,
-        rays as f64 / seconds / 1e6
-    );
-    if let Some(max) = working_sets.iter().max() {
-        let mean = working_sets.iter().sum::<usize>() as f64 / working_sets.len() as f64;
-        println!(
-            "working set per frame: mean {:.1} MB, largest {:.1} MB (of {:.1} MB)",
-            mean / 1e6,
-            *max as f64 / 1e6,
-            source.bytes() as f64 / 1e6
-        );
-    }
-    if a.json {
-        let json = serde_json::json!({
-            "frames": cameras.len(),
-            "seconds": seconds,
-            "fps": fps,
-            "rays": rays,
-            "mrays_per_s": rays as f64 / seconds / 1e6,
-            "frame_seconds": frame_seconds,
-            "threads": settings.threads,
-            "width": a.width,
-            "height": a.height,
-            "load_seconds": load_seconds,
-            "working_set_bytes": working_sets,
-        });
-        println!("{json}");
-    }
-    Ok(())
-}
-
 fn parse_isa(s: &str) -> Result<Isa, String> {
     let isa = match s {
         "avx512" => Isa::Avx512,
@@ -397,6 +332,7 @@ enum CertsAction {
     /// DIR/NODE.pem, DIR/NODE.key; the CA key goes to DIR/ca/ca.key (or
     /// --ca-dir), apart from the node keys and never needed at run time.
     Init {
+        /// The certificate directory to create.
         dir: PathBuf,
         /// Issue certificates for every node of this cluster config.
         #[arg(long, conflicts_with = "nodes")]
@@ -411,6 +347,7 @@ enum CertsAction {
     /// Issue certificates for more nodes from DIR's existing CA, leaving
     /// the others' as they are.
     Add {
+        /// The certificate directory made by `dray certs init`.
         dir: PathBuf,
         /// Node names, comma separated.
         #[arg(long = "node", alias = "nodes", value_delimiter = ',', required = true)]
@@ -422,6 +359,7 @@ enum CertsAction {
     /// Copy what one node needs at run time (ca.pem, NODE.pem, NODE.key;
     /// never the CA key) to a folder for its host, to use as its certs.dir.
     Bundle {
+        /// The certificate directory made by `dray certs init`.
         dir: PathBuf,
         /// The node.
         #[arg(long)]
@@ -485,10 +423,13 @@ fn certs(action: CertsAction) -> anyhow::Result<()> {
 enum GenerateModel {
     /// A power plant like the paper's: steel frame, pipes, tanks, machinery.
     Plant {
+        /// Triangles of the plant (about; the last part is cut to fit).
         #[arg(long)]
         triangles: u64,
+        /// Random seed: the same seed and count give the same file.
         #[arg(long, default_value_t = 1)]
         seed: u64,
+        /// The PLY file to write.
         #[arg(long)]
         out: PathBuf,
     },
@@ -621,7 +562,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
         }
         Command::Cluster {
             config,
-            frames,
+            save_frames,
             isa,
             json,
         } => {
@@ -631,9 +572,9 @@ fn run(cli: Cli) -> Result<ExitCode> {
             if let Some(isa) = isa {
                 extra.extend(["--isa".to_string(), isa.name().to_string()]);
             }
-            if let Some(dir) = &frames {
-                let dir = std::path::absolute(dir).context("the --frames directory")?;
-                extra.extend(["--frames".to_string(), dir.display().to_string()]);
+            if let Some(dir) = &save_frames {
+                let dir = std::path::absolute(dir).context("the --save-frames directory")?;
+                extra.extend(["--save-frames".to_string(), dir.display().to_string()]);
             }
             let exe = std::env::current_exe().context("finding the dray binary")?;
             let report =
@@ -642,13 +583,13 @@ fn run(cli: Cli) -> Result<ExitCode> {
         }
         Command::Node {
             config,
-            frames,
+            save_frames,
             role,
             index,
             isa,
         } => {
             let mut cfg = dray_config::Config::load(&config)?;
-            frames_to(&mut cfg, frames);
+            save_frames_to(&mut cfg, save_frames);
             if !(role == Role::Client && cfg.clients.preload) {
                 allocator::streaming();
             }
@@ -688,13 +629,13 @@ fn run(cli: Cli) -> Result<ExitCode> {
         }
         Command::Sim {
             config,
-            frames,
+            save_frames,
             clients,
             isa,
             json,
         } => {
             let mut cfg = dray_config::Config::load(&config)?;
-            frames_to(&mut cfg, frames);
+            save_frames_to(&mut cfg, save_frames);
             if !cfg.clients.preload {
                 allocator::streaming();
             }
@@ -704,27 +645,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 ..RunOptions::default()
             };
             let run = runtime()?.block_on(dray_actors::cluster::sim(&cfg, &opts))?;
-            let mut summary = run.display.to_json();
-            summary["clients"] = run
-                .clients
-                .iter()
-                .map(|c| {
-                    serde_json::json!({
-                        "tiles": c.tiles,
-                        "rays": c.rays,
-                        "misses": c.misses,
-                        "fetched": c.fetched,
-                        "bytes_fetched": c.bytes_fetched,
-                        "bytes_raw": c.bytes_raw,
-                        "refetched": c.refetched,
-                        "evicted": c.evicted,
-                        "peak_cache_bytes": c.peak_cache_bytes,
-                        "prefetched": c.prefetched,
-                        "voxels_lost": c.voxels_lost,
-                    })
-                })
-                .collect();
-            print_report(&summary, &[], json);
+            print_report(&run.to_json(), &[], json);
         }
         Command::Experiment {
             file,
@@ -823,8 +744,8 @@ fn build_database(opts: &PreprocessOptions) -> Result<()> {
     Ok(())
 }
 
-/// `--frames DIR`: every frame as a PNG, and the metrics, in DIR.
-fn frames_to(cfg: &mut dray_config::Config, dir: Option<PathBuf>) {
+/// `--save-frames DIR`: every frame as a PNG, and the metrics, in DIR.
+fn save_frames_to(cfg: &mut dray_config::Config, dir: Option<PathBuf>) {
     if let Some(dir) = dir {
         cfg.display.output = Some(dir);
         cfg.display.save_frames = true;
@@ -858,9 +779,8 @@ fn print_report(summary: &serde_json::Value, events: &[String], json: bool) {
 /// its number of frames.
 fn write_walkthrough(db: &Database, frames: u32, out: &Path) -> Result<u32> {
     let path = CameraPath::walkthrough(&db.manifest.model_bounds, frames);
-    let tmp = out.with_extension("toml.tmp");
-    std::fs::write(&tmp, path.to_toml()).with_context(|| format!("writing {}", tmp.display()))?;
-    std::fs::rename(&tmp, out).with_context(|| format!("writing {}", out.display()))?;
+    path.save(out)
+        .with_context(|| format!("writing {}", out.display()))?;
     Ok(path.frames)
 }
 
@@ -916,6 +836,9 @@ fn demo(config: &Path, triangles: u64, frames: u32) -> Result<()> {
 fn render(a: &RenderArgs) -> Result<()> {
     dray_config::check_image_side("--width", a.width)?;
     dray_config::check_image_side("--height", a.height)?;
+    dray_protocol::check_reflectance(a.reflectance).map_err(flag("--reflectance"))?;
+    dray_protocol::check_reflection_depth(a.reflections).map_err(flag("--reflections"))?;
+    dray_protocol::check_light_dir(a.light.to_array()).map_err(flag("--light"))?;
     let db = Database::open(&a.db)?;
     let load = std::time::Instant::now();
     let source = ResidentSource::load(&db)?;
@@ -930,10 +853,7 @@ fn render(a: &RenderArgs) -> Result<()> {
         fov_degrees: a.fov,
         ..default
     };
-    camera.check().map_err(|e| anyhow::anyhow!("camera: {e}"))?;
-    if !(0.0..=1.0).contains(&a.reflectance) {
-        bail!("--reflectance {} is not between 0 and 1", a.reflectance);
-    }
+    check_camera_flags(&camera)?;
     let defaults = RenderSettings::primary(bounds.diagonal());
     let settings = RenderSettings {
         shade: a.out.is_some()
@@ -957,15 +877,27 @@ fn render(a: &RenderArgs) -> Result<()> {
         occluder_cache: !a.no_occluder_cache,
         ..defaults
     };
-    let threads = settings.threads;
+    let not_loaded = |id| anyhow::anyhow!("voxel {id} was not loaded");
     if let Some(path) = &a.path {
-        return render_path(a, path, &top, &source, &settings, load_seconds);
+        let cameras: Vec<Camera> = CameraPath::load(path)
+            .with_context(|| format!("camera path {}", path.display()))?
+            .cameras()
+            .iter()
+            .map(|c| dray_actors::settings::kernel_camera(c, a.width, a.height))
+            .collect();
+        let report = PathReport {
+            load_seconds,
+            ..render_path(&top, &source, &cameras, &settings, a.working_set).map_err(not_loaded)?
+        };
+        print!("{}", report.text());
+        if a.json {
+            println!("{}", report.to_json());
+        }
+        return Ok(());
     }
-    let passes = render_repeated(&top, &source, &camera, &settings, a.repeat)
-        .map_err(|id| anyhow::anyhow!("voxel {id} was not loaded"))?;
-    let frame = passes.frame;
-    let mut seconds = passes.seconds;
-    let mut shadow_seconds = passes.shadow_seconds;
+    let passes =
+        render_repeated(&top, &source, &camera, &settings, a.repeat).map_err(not_loaded)?;
+    let frame = &passes.frame;
     if let Some(p) = &a.out {
         dray_trace::image::write_png(p, frame.width, frame.height, &frame.rgba)?;
     }
@@ -975,74 +907,106 @@ fn render(a: &RenderArgs) -> Result<()> {
     if let Some(p) = &a.primid_out {
         dray_trace::image::write_u32(p, &frame.primid)?;
     }
-    seconds.sort_by(f64::total_cmp);
-    let s = &frame.stats;
-    let rays = s.primary_rays + s.shadow_rays + s.reflection_rays;
-    let best = rays as f64 / seconds[0] / 1e6;
-    let median = rays as f64 / seconds[seconds.len() / 2] / 1e6;
-    // Shadow rays are timed on their own within each pass: best and
-    // median of the passes, as for all rays.
-    shadow_seconds.sort_by(f64::total_cmp);
-    let shadow_rate =
-        |secs: f64| (secs > 0.0).then(|| s.shadow_rays as f64 / (secs / threads as f64) / 1e6);
-    let shadow_mrays = shadow_rate(shadow_seconds[0]);
-    let shadow_mrays_median = shadow_rate(shadow_seconds[shadow_seconds.len() / 2]);
-    let hit_fraction = s.hits as f64 / s.primary_rays.max(1) as f64;
-    println!(
-        "{}x{} on {threads} thread(s), {} packets of {} rays{}: {:.2} Mrays/s best, {:.2} median ({rays} rays{}), {:.1} % hit, {:.2} voxels entered per {} primary rays; loaded {} voxels ({} MiB) in {load_seconds:.2} s",
-        frame.width,
-        frame.height,
-        settings.isa.name(),
-        settings.isa.lanes(),
-        if settings.isa == Isa::Avx512 {
-            format!(
-                " (32 in {} tiles, sparse in {})",
-                s.wide_tiles, s.sparse_tiles
-            )
-        } else {
-            String::new()
-        },
-        best,
-        median,
-        if a.shadows || a.reflections > 0 {
-            format!(", {} shadow and {} reflection rays", s.shadow_rays, s.reflection_rays)
-        } else {
-            String::new()
-        },
-        100.0 * hit_fraction,
-        s.voxels_visited as f64 / (s.primary_rays as f64 / settings.isa.lanes() as f64),
-        settings.isa.lanes(),
-        db.manifest.voxels.len(),
-        source.bytes() >> 20
-    );
+    let report = ViewReport {
+        voxels: db.manifest.voxels.len(),
+        resident_bytes: source.bytes(),
+        load_seconds,
+        ..ViewReport::new(&passes, &settings, &camera)
+    };
+    println!("{}", report.text());
     if a.json {
-        let json = serde_json::json!({
-            "mrays_per_s": best,
-            "mrays_per_s_median": median,
-            "rays": rays,
-            "primary_rays": s.primary_rays,
-            "shadow_rays": s.shadow_rays,
-            "reflection_rays": s.reflection_rays,
-            "shadow_mrays_per_s": shadow_mrays,
-            "shadow_mrays_per_s_median": shadow_mrays_median,
-            "occluded_fraction": (s.shadow_rays > 0).then(|| s.occluded as f64 / s.shadow_rays as f64),
-            "shadow_packets": s.shadow_packets,
-            "occluder_skips": s.occluder_skips,
-            "threads": threads,
-            "width": frame.width,
-            "height": frame.height,
-            "hit_fraction": hit_fraction,
-            "isa": settings.isa.name(),
-            "lanes": settings.isa.lanes(),
-            "wide_tiles": s.wide_tiles,
-            "sparse_tiles": s.sparse_tiles,
-            "seconds": seconds,
-            "voxels": db.manifest.voxels.len(),
-            "load_seconds": load_seconds,
-            "eye": camera.eye.to_array(),
-            "look": camera.look.to_array(),
-        });
-        println!("{json}");
+        println!("{}", report.to_json());
     }
     Ok(())
+}
+
+/// `dray render`'s camera, checked as a config's or a received one is; the
+/// error names the flag.
+fn check_camera_flags(c: &Camera) -> Result<()> {
+    let wire = dray_protocol::Camera {
+        eye: c.eye.to_array(),
+        look: c.look.to_array(),
+        up: c.up.to_array(),
+        fov_y_deg: c.fov_degrees,
+    };
+    dray_protocol::check_camera(&wire).map_err(|e| {
+        let name = match e.field {
+            CameraField::Eye => "--eye",
+            CameraField::Look => "--look",
+            CameraField::Up => "--up",
+            CameraField::FovYDeg => "--fov",
+        };
+        anyhow::anyhow!("{name}: {}", e.message)
+    })
+}
+
+/// Names the flag a check refused.
+fn flag(name: &'static str) -> impl Fn(String) -> anyhow::Error {
+    move |message| anyhow::anyhow!("{name}: {message}")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Cli;
+    use clap::CommandFactory;
+
+    /// Adds to `missing` each subcommand under `cmd` without an about text
+    /// and each argument without a help text.
+    fn undocumented(cmd: &clap::Command, path: &str, missing: &mut Vec<String>) {
+        let blank = |t: Option<&clap::builder::StyledStr>| {
+            t.is_none_or(|t| t.to_string().trim().is_empty())
+        };
+        for arg in cmd.get_arguments() {
+            if blank(arg.get_help()) {
+                missing.push(format!("{path} {}", arg.get_id()));
+            }
+        }
+        for sub in cmd.get_subcommands() {
+            let path = format!("{path} {}", sub.get_name());
+            if blank(sub.get_about()) {
+                missing.push(path.clone());
+            }
+            undocumented(sub, &path, missing);
+        }
+    }
+
+    #[test]
+    fn every_subcommand_and_argument_has_help() {
+        let cli = Cli::command();
+        cli.clone().debug_assert();
+        let mut missing = Vec::new();
+        undocumented(&cli, "dray", &mut missing);
+        assert!(missing.is_empty(), "no help text: {missing:?}");
+    }
+
+    /// A flag name means one kind of value in every subcommand: `--frames`
+    /// is always a count, and the frames' directory is `--save-frames`.
+    #[test]
+    fn a_flag_name_takes_one_kind_of_value_everywhere() {
+        let mut kinds = std::collections::BTreeMap::<String, Vec<String>>::new();
+        fn collect(
+            cmd: &clap::Command,
+            kinds: &mut std::collections::BTreeMap<String, Vec<String>>,
+        ) {
+            for arg in cmd.get_arguments() {
+                if let Some(long) = arg.get_long() {
+                    let kind = format!("{:?}", arg.get_value_parser().type_id());
+                    let seen = kinds.entry(long.to_string()).or_default();
+                    if !seen.contains(&kind) {
+                        seen.push(kind);
+                    }
+                }
+            }
+            for sub in cmd.get_subcommands() {
+                collect(sub, kinds);
+            }
+        }
+        collect(&Cli::command(), &mut kinds);
+        let mixed: Vec<_> = kinds.iter().filter(|(_, k)| k.len() > 1).collect();
+        assert!(
+            mixed.is_empty(),
+            "flags with values of different types: {mixed:?}"
+        );
+        assert!(kinds.contains_key("save-frames") && kinds.contains_key("frames"));
+    }
 }
