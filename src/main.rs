@@ -348,19 +348,10 @@ fn build_database(opts: &PreprocessOptions) -> Result<()> {
     })
     .context("installing the Ctrl-C handler")?;
     let report = preprocess(opts, &progress)?;
-    let m = &report.manifest;
     let peak = dray_runtime::process::peak_rss_bytes()
         .map(|b| format!(", peak RSS {} MiB", b >> 20))
         .unwrap_or_default();
-    println!(
-        "{}: {} triangles -> {} voxels in {:.1} s ({:.2} M triangles/s), replication {:.3}{peak}",
-        opts.out.display(),
-        m.input_triangles,
-        m.voxels.len(),
-        report.seconds,
-        m.input_triangles as f64 / report.seconds / 1e6,
-        m.stored_triangles as f64 / m.input_triangles as f64
-    );
+    println!("{}{peak}", report.summary(&opts.out));
     Ok(())
 }
 
