@@ -1,436 +1,26 @@
 //! The `dray` command line: it parses arguments and calls into the crates.
 
 mod allocator;
+mod cli;
 
 use anyhow::{bail, Context, Result};
-use clap::{Parser, Subcommand};
+use clap::Parser;
+use cli::{CertsAction, Cli, Command, GenerateModel, RenderArgs};
 use dray_actors::cluster::{NodeOutcome, RunOptions};
 use dray_actors::display::path::CameraPath;
-use dray_protocol::Reflective;
-use dray_protocol::Role;
+use dray_protocol::{CameraField, Role};
 use dray_scene::db::info::DbInfo;
 use dray_scene::db::verify::verify;
 use dray_scene::db::Database;
 use dray_scene::generate::{generate_plant, PlantParams};
-use dray_scene::preprocess::{self, preprocess, PreprocessOptions};
+use dray_scene::preprocess::{preprocess, PreprocessOptions};
 use dray_scene::progress::Progress;
 use dray_trace::camera::Camera;
-use dray_trace::render::{render_repeated, Isa, Packets, RenderSettings};
-use dray_trace::scene::{RecordingSource, ResidentSource, TopLevel, VoxelSource};
-use glam::Vec3;
+use dray_trace::render::{render_repeated, RenderSettings};
+use dray_trace::report::{render_path, PathReport, ViewReport};
+use dray_trace::scene::{ResidentSource, TopLevel};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-
-#[derive(Parser)]
-#[command(
-    name = "dray",
-    version,
-    about = "Interactive distributed ray tracing of massive models"
-)]
-struct Cli {
-    #[command(subcommand)]
-    command: Command,
-}
-
-#[derive(Subcommand)]
-enum Command {
-    /// Generate a synthetic model.
-    Generate {
-        #[command(subcommand)]
-        model: GenerateModel,
-    },
-    /// Build a voxel database from model files (PLY, OBJ), out of core.
-    Preprocess {
-        /// Model files; triangle ids continue from one file to the next.
-        #[arg(required = true)]
-        inputs: Vec<PathBuf>,
-        /// The database directory to create (replaced atomically if it is one).
-        #[arg(long)]
-        out: PathBuf,
-        /// A BSP node with at most this many triangles becomes a voxel.
-        #[arg(long, default_value_t = preprocess::DEFAULT_MAX_TRIANGLES)]
-        max_triangles: u32,
-        /// A BSP node at this depth becomes a voxel whatever it holds.
-        #[arg(long, default_value_t = preprocess::DEFAULT_MAX_DEPTH)]
-        max_depth: u32,
-        /// Place AxBxC copies of the whole input on a grid, e.g. 2x1x2.
-        #[arg(long, value_parser = parse_copies)]
-        copies: Option<[u32; 3]>,
-        /// Grid step between copies, as a multiple of the input's extent.
-        #[arg(long, default_value_t = 1.1)]
-        spacing: f32,
-        /// Worker threads (default: every core).
-        #[arg(long, default_value_t = 0)]
-        threads: usize,
-        /// Peak memory budget in MiB.
-        #[arg(long, default_value_t = preprocess::DEFAULT_MEMORY_MB)]
-        memory_mb: u64,
-        /// zstd level of the voxel blobs (1-22).
-        #[arg(long, default_value_t = preprocess::DEFAULT_ZSTD_LEVEL)]
-        zstd_level: i32,
-    },
-    /// Render one view of a database in this process, every voxel loaded.
-    Render(RenderArgs),
-    /// Check every voxel of a database; exits non-zero naming each bad one.
-    Verify { db: PathBuf },
-    /// Summarize a database.
-    Info {
-        db: PathBuf,
-        /// One JSON object instead of text.
-        #[arg(long)]
-        json: bool,
-    },
-    /// Cluster certificates (mutual TLS between nodes).
-    Certs {
-        #[command(subcommand)]
-        action: CertsAction,
-    },
-    /// Generate a default plant, preprocess it (kept for the next run), and
-    /// render a walkthrough from outside to deep inside on a local cluster
-    /// (config/examples/demo.toml: 2 clients, 2 stores, over QUIC).
-    Demo {
-        /// The demo's cluster config.
-        #[arg(long, default_value = DEMO_CONFIG)]
-        config: PathBuf,
-        /// Triangles of the generated plant.
-        #[arg(long, default_value_t = 1_000_000)]
-        triangles: u64,
-        /// Frames of the walkthrough.
-        #[arg(long, default_value_t = 90)]
-        frames: u32,
-    },
-    /// Start every node of a config on this machine as separate processes
-    /// over QUIC, run the camera path, print a summary, stop them all.
-    Cluster {
-        config: PathBuf,
-        /// Write every frame as a PNG (and the metrics CSV) in this
-        /// directory, instead of the config's `display.output`.
-        #[arg(long)]
-        frames: Option<PathBuf>,
-        /// Kernel instruction set for the clients (default: the best).
-        #[arg(long, value_parser = parse_isa)]
-        isa: Option<Isa>,
-        /// Print the summary as one JSON line.
-        #[arg(long)]
-        json: bool,
-    },
-    /// Run one node of a config (for a cluster across machines, from the
-    /// same config file on each).
-    Node {
-        #[arg(long)]
-        config: PathBuf,
-        /// Display: write every frame as a PNG (and the metrics CSV) in
-        /// this directory, instead of the config's `display.output`.
-        #[arg(long)]
-        frames: Option<PathBuf>,
-        /// scheduler, store, client or display.
-        #[arg(long, value_parser = parse_role)]
-        role: Role,
-        /// Which store or client.
-        #[arg(long, default_value_t = 0)]
-        index: usize,
-        /// Kernel instruction set (clients).
-        #[arg(long, value_parser = parse_isa)]
-        isa: Option<Isa>,
-    },
-    /// Run every node of a config in this process over the in-process
-    /// transport (with the config's link shaping).
-    Sim {
-        config: PathBuf,
-        /// Write every frame as a PNG (and the metrics CSV) in this
-        /// directory, instead of the config's `display.output`.
-        #[arg(long)]
-        frames: Option<PathBuf>,
-        /// Number of clients instead of the config's.
-        #[arg(long)]
-        clients: Option<u32>,
-        /// Kernel instruction set for the clients (default: the best).
-        #[arg(long, value_parser = parse_isa)]
-        isa: Option<Isa>,
-        /// Print the summary as one JSON line.
-        #[arg(long)]
-        json: bool,
-    },
-    /// Run an experiment file: every combination of its swept config keys,
-    /// `repeat` times; writes points.csv, frames.csv, plots and summary.md
-    /// (docs/experiments.md).
-    Experiment {
-        file: PathBuf,
-        /// The results directory (default: results/NAME/YYYYmmdd-HHMMSS).
-        #[arg(long, conflicts_with = "resume")]
-        out: Option<PathBuf>,
-        /// Each point once, on a tenth of the frames (at least 2).
-        #[arg(long)]
-        quick: bool,
-        /// Go on with the runs missing from this earlier results directory.
-        #[arg(long)]
-        resume: Option<PathBuf>,
-    },
-    /// Write a camera path (TOML keyframes) that flies from outside a
-    /// database's model to deep inside it.
-    Walkthrough {
-        db: PathBuf,
-        #[arg(long, default_value_t = 90)]
-        frames: u32,
-        #[arg(long)]
-        out: PathBuf,
-    },
-}
-
-/// The demo's config, relative to the workspace (where `cargo run` runs).
-const DEMO_CONFIG: &str = "config/examples/demo.toml";
-
-fn parse_role(s: &str) -> Result<Role, String> {
-    match s {
-        "scheduler" => Ok(Role::Scheduler),
-        "store" => Ok(Role::Store),
-        "client" => Ok(Role::Client),
-        "display" => Ok(Role::Display),
-        _ => Err(format!(
-            "'{s}' is not a role (scheduler, store, client, display)"
-        )),
-    }
-}
-
-#[derive(clap::Args)]
-struct RenderArgs {
-    db: PathBuf,
-    /// Camera position (default: a view of the whole model).
-    #[arg(long, value_parser = parse_vec3, allow_hyphen_values = true)]
-    eye: Option<Vec3>,
-    /// Point looked at (default: the model's centre).
-    #[arg(long, value_parser = parse_vec3, allow_hyphen_values = true)]
-    look: Option<Vec3>,
-    #[arg(long, value_parser = parse_vec3, default_value = "0,1,0", allow_hyphen_values = true)]
-    up: Vec3,
-    /// Vertical field of view in degrees.
-    #[arg(long, default_value_t = 50.0)]
-    fov: f32,
-    #[arg(long, default_value_t = 640)]
-    width: u32,
-    #[arg(long, default_value_t = 480)]
-    height: u32,
-    /// Shaded image (PNG).
-    #[arg(long)]
-    out: Option<PathBuf>,
-    /// Hit distances as a grey PFM (docs/design.md's comparison format).
-    #[arg(long)]
-    depth_out: Option<PathBuf>,
-    /// Original triangle ids as raw little-endian u32.
-    #[arg(long)]
-    primid_out: Option<PathBuf>,
-    /// Hard shadows from the light.
-    #[arg(long)]
-    shadows: bool,
-    /// Direction towards the distant light.
-    #[arg(long, value_parser = parse_vec3, default_value = "0.3,1,0.2", allow_hyphen_values = true)]
-    light: Vec3,
-    /// Mirror bounces on reflective surfaces.
-    #[arg(long, default_value_t = 0)]
-    reflections: u32,
-    /// Which surfaces reflect: all, ids:A-B (original triangle ids, B
-    /// exclusive) or color:R,G,B (vertex color).
-    #[arg(long, default_value = "all")]
-    reflective: Reflective,
-    /// Share of the light a reflective surface mirrors (0-1).
-    #[arg(long, default_value_t = 0.6)]
-    reflectance: f32,
-    /// Color each voxel differently (the paper's Figure 5).
-    #[arg(long)]
-    voxel_colors: bool,
-    /// Render threads (default: every core).
-    #[arg(long, default_value_t = 0)]
-    threads: usize,
-    /// Kernel instruction set: avx512, avx2 or portable (default: the best
-    /// this CPU has).
-    #[arg(long, value_parser = parse_isa)]
-    isa: Option<Isa>,
-    /// Rays per packet with AVX-512: auto (per tile, from how coherent the
-    /// rays of the tiles before were), 16, 32, or sparse (16, and nodes
-    /// that at most four lanes enter tested for those four at once).
-    #[arg(long, value_parser = parse_packets, default_value = "auto")]
-    packets: Packets,
-    /// Trace every shadow packet through the voxels, without first trying
-    /// the triangle that blocked the packet before (the answers are the
-    /// same; for measuring the traversal alone).
-    #[arg(long)]
-    no_occluder_cache: bool,
-    /// Timed passes (after one untimed warm-up); best and median are reported.
-    #[arg(long, default_value_t = 1)]
-    repeat: usize,
-    /// Print one JSON object as the last line.
-    #[arg(long)]
-    json: bool,
-    /// Render every camera of this camera path (TOML keyframes, as the
-    /// cluster's `render.camera_path`) instead of one view, shaded, and
-    /// report frames per second: the one-process baseline of the cluster.
-    #[arg(long, conflicts_with_all = ["eye", "look", "up", "fov", "repeat", "out", "depth_out", "primid_out"])]
-    path: Option<PathBuf>,
-    /// With `--path`: record which voxels each frame enters and report each
-    /// frame's working set (voxel bytes in the kernel's layout, as a
-    /// client's cache counts them).
-    #[arg(long, requires = "path")]
-    working_set: bool,
-}
-
-/// `dray render --path`: every camera of a path, once each, everything
-/// resident; the one-process figure the cluster's frame rate is compared
-/// with.
-fn render_path(
-    a: &RenderArgs,
-    path: &Path,
-    top: &TopLevel,
-    source: &ResidentSource,
-    settings: &RenderSettings,
-    load_seconds: f64,
-) -> Result<()> {
-    let cameras = CameraPath::load(path)
-        .with_context(|| format!("camera path {}", path.display()))?
-        .cameras();
-    // Recording costs a flag test per voxel entered: only when asked.
-    let mut recorder = a
-        .working_set
-        .then(|| RecordingSource::new(source, source.voxel_count()));
-    let mut working_sets = Vec::new();
-    let start = std::time::Instant::now();
-    let mut rays = 0u64;
-    let mut frame_seconds = Vec::with_capacity(cameras.len());
-    for c in &cameras {
-        let camera = dray_actors::settings::kernel_camera(c, a.width, a.height);
-        let frame = match &mut recorder {
-            Some(r) => {
-                let f = dray_trace::render::render(top, r, &camera, settings);
-                let bytes: usize = r
-                    .take()
-                    .iter()
-                    .filter_map(|&id| source.voxel(id))
-                    .map(|v| v.bytes)
-                    .sum();
-                working_sets.push(bytes);
-                f
-            }
-            None => dray_trace::render::render(top, source, &camera, settings),
-        }
-        .map_err(|id| anyhow::anyhow!("voxel {id} was not loaded"))?;
-        let s = &frame.stats;
-        rays += s.primary_rays + s.shadow_rays + s.reflection_rays;
-        frame_seconds.push(s.seconds);
-    }
-    let seconds = start.elapsed().as_secs_f64();
-    let fps = cameras.len() as f64 / seconds;
-    println!(
-        "{} frames of {}x{} on {} thread(s) in {seconds:.2} s: {fps:.2} frames/s, {:.2} Mrays/s (loaded in {load_seconds:.2} s)",
-        cameras.len(),
-        a.width,
-        a.height,
-        settings.threads,
-        rays as f64 / seconds / 1e6
-    );
-    if let Some(max) = working_sets.iter().max() {
-        let mean = working_sets.iter().sum::<usize>() as f64 / working_sets.len() as f64;
-        println!(
-            "working set per frame: mean {:.1} MB, largest {:.1} MB (of {:.1} MB)",
-            mean / 1e6,
-            *max as f64 / 1e6,
-            source.bytes() as f64 / 1e6
-        );
-    }
-    if a.json {
-        let json = serde_json::json!({
-            "frames": cameras.len(),
-            "seconds": seconds,
-            "fps": fps,
-            "rays": rays,
-            "mrays_per_s": rays as f64 / seconds / 1e6,
-            "frame_seconds": frame_seconds,
-            "threads": settings.threads,
-            "width": a.width,
-            "height": a.height,
-            "load_seconds": load_seconds,
-            "working_set_bytes": working_sets,
-        });
-        println!("{json}");
-    }
-    Ok(())
-}
-
-fn parse_isa(s: &str) -> Result<Isa, String> {
-    let isa = match s {
-        "avx512" => Isa::Avx512,
-        "avx2" => Isa::Avx2,
-        "portable" => Isa::Portable,
-        _ => return Err(format!("'{s}' is not avx512, avx2 or portable")),
-    };
-    if isa.supported() {
-        Ok(isa)
-    } else {
-        Err(format!("this CPU cannot run the {s} kernel"))
-    }
-}
-
-fn parse_packets(s: &str) -> Result<Packets, String> {
-    match s {
-        "auto" => Ok(Packets::Auto),
-        "16" => Ok(Packets::Narrow),
-        "32" => Ok(Packets::Wide),
-        "sparse" => Ok(Packets::Sparse),
-        _ => Err(format!("'{s}' is not auto, 16, 32 or sparse")),
-    }
-}
-
-fn parse_vec3(s: &str) -> Result<Vec3, String> {
-    let v: Vec<f32> = s
-        .split(',')
-        .map(|p| p.trim().parse::<f32>())
-        .collect::<Result<_, _>>()
-        .map_err(|_| format!("'{s}' is not x,y,z"))?;
-    match v[..] {
-        [x, y, z] if v.iter().all(|c| c.is_finite()) => Ok(Vec3::new(x, y, z)),
-        _ => Err(format!("'{s}' is not x,y,z (three finite numbers)")),
-    }
-}
-
-#[derive(Subcommand)]
-enum CertsAction {
-    /// Create a cluster CA and a certificate for every node, named from a
-    /// cluster config (--config) or listed (--nodes): DIR/ca.pem and
-    /// DIR/NODE.pem, DIR/NODE.key; the CA key goes to DIR/ca/ca.key (or
-    /// --ca-dir), apart from the node keys and never needed at run time.
-    Init {
-        dir: PathBuf,
-        /// Issue certificates for every node of this cluster config.
-        #[arg(long, conflicts_with = "nodes")]
-        config: Option<PathBuf>,
-        /// Node names, comma separated (e.g. scheduler,display,store-0,client-0).
-        #[arg(long, value_delimiter = ',')]
-        nodes: Vec<String>,
-        /// Folder for the CA key (default DIR/ca).
-        #[arg(long)]
-        ca_dir: Option<PathBuf>,
-    },
-    /// Issue certificates for more nodes from DIR's existing CA, leaving
-    /// the others' as they are.
-    Add {
-        dir: PathBuf,
-        /// Node names, comma separated.
-        #[arg(long = "node", alias = "nodes", value_delimiter = ',', required = true)]
-        nodes: Vec<String>,
-        /// Folder of the CA key (default DIR/ca).
-        #[arg(long)]
-        ca_dir: Option<PathBuf>,
-    },
-    /// Copy what one node needs at run time (ca.pem, NODE.pem, NODE.key;
-    /// never the CA key) to a folder for its host, to use as its certs.dir.
-    Bundle {
-        dir: PathBuf,
-        /// The node.
-        #[arg(long)]
-        node: String,
-        /// Where to write the bundle (default DIR/bundles/NODE).
-        #[arg(long)]
-        out: Option<PathBuf>,
-    },
-}
 
 fn certs(action: CertsAction) -> anyhow::Result<()> {
     use dray_runtime::certs;
@@ -479,35 +69,6 @@ fn certs(action: CertsAction) -> anyhow::Result<()> {
         }
     }
     Ok(())
-}
-
-#[derive(Subcommand)]
-enum GenerateModel {
-    /// A power plant like the paper's: steel frame, pipes, tanks, machinery.
-    Plant {
-        #[arg(long)]
-        triangles: u64,
-        #[arg(long, default_value_t = 1)]
-        seed: u64,
-        #[arg(long)]
-        out: PathBuf,
-    },
-}
-
-fn parse_copies(s: &str) -> Result<[u32; 3], String> {
-    let parts: Vec<&str> = s.split(['x', 'X']).collect();
-    let bad = || format!("'{s}' is not AxBxC (three positive integers, e.g. 2x1x2)");
-    if parts.len() != 3 {
-        return Err(bad());
-    }
-    let mut out = [0u32; 3];
-    for (o, p) in out.iter_mut().zip(parts) {
-        *o = p.trim().parse().map_err(|_| bad())?;
-        if *o == 0 {
-            return Err(bad());
-        }
-    }
-    Ok(out)
 }
 
 fn main() -> ExitCode {
@@ -621,7 +182,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
         }
         Command::Cluster {
             config,
-            frames,
+            save_frames,
             isa,
             json,
         } => {
@@ -631,9 +192,9 @@ fn run(cli: Cli) -> Result<ExitCode> {
             if let Some(isa) = isa {
                 extra.extend(["--isa".to_string(), isa.name().to_string()]);
             }
-            if let Some(dir) = &frames {
-                let dir = std::path::absolute(dir).context("the --frames directory")?;
-                extra.extend(["--frames".to_string(), dir.display().to_string()]);
+            if let Some(dir) = &save_frames {
+                let dir = std::path::absolute(dir).context("the --save-frames directory")?;
+                extra.extend(["--save-frames".to_string(), dir.display().to_string()]);
             }
             let exe = std::env::current_exe().context("finding the dray binary")?;
             let report =
@@ -642,13 +203,13 @@ fn run(cli: Cli) -> Result<ExitCode> {
         }
         Command::Node {
             config,
-            frames,
+            save_frames,
             role,
             index,
             isa,
         } => {
             let mut cfg = dray_config::Config::load(&config)?;
-            frames_to(&mut cfg, frames);
+            save_frames_to(&mut cfg, save_frames);
             if !(role == Role::Client && cfg.clients.preload) {
                 allocator::streaming();
             }
@@ -688,13 +249,13 @@ fn run(cli: Cli) -> Result<ExitCode> {
         }
         Command::Sim {
             config,
-            frames,
+            save_frames,
             clients,
             isa,
             json,
         } => {
             let mut cfg = dray_config::Config::load(&config)?;
-            frames_to(&mut cfg, frames);
+            save_frames_to(&mut cfg, save_frames);
             if !cfg.clients.preload {
                 allocator::streaming();
             }
@@ -704,27 +265,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 ..RunOptions::default()
             };
             let run = runtime()?.block_on(dray_actors::cluster::sim(&cfg, &opts))?;
-            let mut summary = run.display.to_json();
-            summary["clients"] = run
-                .clients
-                .iter()
-                .map(|c| {
-                    serde_json::json!({
-                        "tiles": c.tiles,
-                        "rays": c.rays,
-                        "misses": c.misses,
-                        "fetched": c.fetched,
-                        "bytes_fetched": c.bytes_fetched,
-                        "bytes_raw": c.bytes_raw,
-                        "refetched": c.refetched,
-                        "evicted": c.evicted,
-                        "peak_cache_bytes": c.peak_cache_bytes,
-                        "prefetched": c.prefetched,
-                        "voxels_lost": c.voxels_lost,
-                    })
-                })
-                .collect();
-            print_report(&summary, &[], json);
+            print_report(&run.to_json(), &[], json);
         }
         Command::Experiment {
             file,
@@ -807,24 +348,15 @@ fn build_database(opts: &PreprocessOptions) -> Result<()> {
     })
     .context("installing the Ctrl-C handler")?;
     let report = preprocess(opts, &progress)?;
-    let m = &report.manifest;
     let peak = dray_runtime::process::peak_rss_bytes()
         .map(|b| format!(", peak RSS {} MiB", b >> 20))
         .unwrap_or_default();
-    println!(
-        "{}: {} triangles -> {} voxels in {:.1} s ({:.2} M triangles/s), replication {:.3}{peak}",
-        opts.out.display(),
-        m.input_triangles,
-        m.voxels.len(),
-        report.seconds,
-        m.input_triangles as f64 / report.seconds / 1e6,
-        m.stored_triangles as f64 / m.input_triangles as f64
-    );
+    println!("{}{peak}", report.summary(&opts.out));
     Ok(())
 }
 
-/// `--frames DIR`: every frame as a PNG, and the metrics, in DIR.
-fn frames_to(cfg: &mut dray_config::Config, dir: Option<PathBuf>) {
+/// `--save-frames DIR`: every frame as a PNG, and the metrics, in DIR.
+fn save_frames_to(cfg: &mut dray_config::Config, dir: Option<PathBuf>) {
     if let Some(dir) = dir {
         cfg.display.output = Some(dir);
         cfg.display.save_frames = true;
@@ -858,9 +390,8 @@ fn print_report(summary: &serde_json::Value, events: &[String], json: bool) {
 /// its number of frames.
 fn write_walkthrough(db: &Database, frames: u32, out: &Path) -> Result<u32> {
     let path = CameraPath::walkthrough(&db.manifest.model_bounds, frames);
-    let tmp = out.with_extension("toml.tmp");
-    std::fs::write(&tmp, path.to_toml()).with_context(|| format!("writing {}", tmp.display()))?;
-    std::fs::rename(&tmp, out).with_context(|| format!("writing {}", out.display()))?;
+    path.save(out)
+        .with_context(|| format!("writing {}", out.display()))?;
     Ok(path.frames)
 }
 
@@ -916,6 +447,9 @@ fn demo(config: &Path, triangles: u64, frames: u32) -> Result<()> {
 fn render(a: &RenderArgs) -> Result<()> {
     dray_config::check_image_side("--width", a.width)?;
     dray_config::check_image_side("--height", a.height)?;
+    dray_protocol::check_reflectance(a.reflectance).map_err(flag("--reflectance"))?;
+    dray_protocol::check_reflection_depth(a.reflections).map_err(flag("--reflections"))?;
+    dray_protocol::check_light_dir(a.light.to_array()).map_err(flag("--light"))?;
     let db = Database::open(&a.db)?;
     let load = std::time::Instant::now();
     let source = ResidentSource::load(&db)?;
@@ -930,10 +464,7 @@ fn render(a: &RenderArgs) -> Result<()> {
         fov_degrees: a.fov,
         ..default
     };
-    camera.check().map_err(|e| anyhow::anyhow!("camera: {e}"))?;
-    if !(0.0..=1.0).contains(&a.reflectance) {
-        bail!("--reflectance {} is not between 0 and 1", a.reflectance);
-    }
+    check_camera_flags(&camera)?;
     let defaults = RenderSettings::primary(bounds.diagonal());
     let settings = RenderSettings {
         shade: a.out.is_some()
@@ -957,15 +488,27 @@ fn render(a: &RenderArgs) -> Result<()> {
         occluder_cache: !a.no_occluder_cache,
         ..defaults
     };
-    let threads = settings.threads;
+    let not_loaded = |id| anyhow::anyhow!("voxel {id} was not loaded");
     if let Some(path) = &a.path {
-        return render_path(a, path, &top, &source, &settings, load_seconds);
+        let cameras: Vec<Camera> = CameraPath::load(path)
+            .with_context(|| format!("camera path {}", path.display()))?
+            .cameras()
+            .iter()
+            .map(|c| dray_actors::settings::kernel_camera(c, a.width, a.height))
+            .collect();
+        let report = PathReport {
+            load_seconds,
+            ..render_path(&top, &source, &cameras, &settings, a.working_set).map_err(not_loaded)?
+        };
+        print!("{}", report.text());
+        if a.json {
+            println!("{}", report.to_json());
+        }
+        return Ok(());
     }
-    let passes = render_repeated(&top, &source, &camera, &settings, a.repeat)
-        .map_err(|id| anyhow::anyhow!("voxel {id} was not loaded"))?;
-    let frame = passes.frame;
-    let mut seconds = passes.seconds;
-    let mut shadow_seconds = passes.shadow_seconds;
+    let passes =
+        render_repeated(&top, &source, &camera, &settings, a.repeat).map_err(not_loaded)?;
+    let frame = &passes.frame;
     if let Some(p) = &a.out {
         dray_trace::image::write_png(p, frame.width, frame.height, &frame.rgba)?;
     }
@@ -975,74 +518,40 @@ fn render(a: &RenderArgs) -> Result<()> {
     if let Some(p) = &a.primid_out {
         dray_trace::image::write_u32(p, &frame.primid)?;
     }
-    seconds.sort_by(f64::total_cmp);
-    let s = &frame.stats;
-    let rays = s.primary_rays + s.shadow_rays + s.reflection_rays;
-    let best = rays as f64 / seconds[0] / 1e6;
-    let median = rays as f64 / seconds[seconds.len() / 2] / 1e6;
-    // Shadow rays are timed on their own within each pass: best and
-    // median of the passes, as for all rays.
-    shadow_seconds.sort_by(f64::total_cmp);
-    let shadow_rate =
-        |secs: f64| (secs > 0.0).then(|| s.shadow_rays as f64 / (secs / threads as f64) / 1e6);
-    let shadow_mrays = shadow_rate(shadow_seconds[0]);
-    let shadow_mrays_median = shadow_rate(shadow_seconds[shadow_seconds.len() / 2]);
-    let hit_fraction = s.hits as f64 / s.primary_rays.max(1) as f64;
-    println!(
-        "{}x{} on {threads} thread(s), {} packets of {} rays{}: {:.2} Mrays/s best, {:.2} median ({rays} rays{}), {:.1} % hit, {:.2} voxels entered per {} primary rays; loaded {} voxels ({} MiB) in {load_seconds:.2} s",
-        frame.width,
-        frame.height,
-        settings.isa.name(),
-        settings.isa.lanes(),
-        if settings.isa == Isa::Avx512 {
-            format!(
-                " (32 in {} tiles, sparse in {})",
-                s.wide_tiles, s.sparse_tiles
-            )
-        } else {
-            String::new()
-        },
-        best,
-        median,
-        if a.shadows || a.reflections > 0 {
-            format!(", {} shadow and {} reflection rays", s.shadow_rays, s.reflection_rays)
-        } else {
-            String::new()
-        },
-        100.0 * hit_fraction,
-        s.voxels_visited as f64 / (s.primary_rays as f64 / settings.isa.lanes() as f64),
-        settings.isa.lanes(),
-        db.manifest.voxels.len(),
-        source.bytes() >> 20
-    );
+    let report = ViewReport {
+        voxels: db.manifest.voxels.len(),
+        resident_bytes: source.bytes(),
+        load_seconds,
+        ..ViewReport::new(&passes, &settings, &camera)
+    };
+    println!("{}", report.text());
     if a.json {
-        let json = serde_json::json!({
-            "mrays_per_s": best,
-            "mrays_per_s_median": median,
-            "rays": rays,
-            "primary_rays": s.primary_rays,
-            "shadow_rays": s.shadow_rays,
-            "reflection_rays": s.reflection_rays,
-            "shadow_mrays_per_s": shadow_mrays,
-            "shadow_mrays_per_s_median": shadow_mrays_median,
-            "occluded_fraction": (s.shadow_rays > 0).then(|| s.occluded as f64 / s.shadow_rays as f64),
-            "shadow_packets": s.shadow_packets,
-            "occluder_skips": s.occluder_skips,
-            "threads": threads,
-            "width": frame.width,
-            "height": frame.height,
-            "hit_fraction": hit_fraction,
-            "isa": settings.isa.name(),
-            "lanes": settings.isa.lanes(),
-            "wide_tiles": s.wide_tiles,
-            "sparse_tiles": s.sparse_tiles,
-            "seconds": seconds,
-            "voxels": db.manifest.voxels.len(),
-            "load_seconds": load_seconds,
-            "eye": camera.eye.to_array(),
-            "look": camera.look.to_array(),
-        });
-        println!("{json}");
+        println!("{}", report.to_json());
     }
     Ok(())
+}
+
+/// `dray render`'s camera, checked as a config's or a received one is; the
+/// error names the flag.
+fn check_camera_flags(c: &Camera) -> Result<()> {
+    let wire = dray_protocol::Camera {
+        eye: c.eye.to_array(),
+        look: c.look.to_array(),
+        up: c.up.to_array(),
+        fov_y_deg: c.fov_degrees,
+    };
+    dray_protocol::check_camera(&wire).map_err(|e| {
+        let name = match e.field {
+            CameraField::Eye => "--eye",
+            CameraField::Look => "--look",
+            CameraField::Up => "--up",
+            CameraField::FovYDeg => "--fov",
+        };
+        anyhow::anyhow!("{name}: {}", e.message)
+    })
+}
+
+/// Names the flag a check refused.
+fn flag(name: &'static str) -> impl Fn(String) -> anyhow::Error {
+    move |message| anyhow::anyhow!("{name}: {message}")
 }

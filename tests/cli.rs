@@ -119,6 +119,33 @@ fn generate_preprocess_verify_info() {
         "Pf\n64 48\n-1.0\n".len() as u64 + 64 * 48 * 4
     );
 
+    // A camera the cluster would refuse is refused here in the same words,
+    // naming the flag.
+    let out = dray(&[
+        "render",
+        s(&db),
+        "--eye",
+        "0,0,0",
+        "--look",
+        "0,10,0",
+        "--up",
+        "0,-2,0",
+    ]);
+    assert!(!out.status.success(), "{}", text(&out));
+    let words = dray_protocol::check_camera(&dray_protocol::Camera {
+        eye: [0.0; 3],
+        look: [0.0, 10.0, 0.0],
+        up: [0.0, -2.0, 0.0],
+        fov_y_deg: 50.0,
+    })
+    .unwrap_err();
+    assert_eq!(words.field, dray_protocol::CameraField::Up);
+    assert!(
+        text(&out).contains(&format!("error: --up: {}", words.message)),
+        "{}",
+        text(&out)
+    );
+
     // Corrupt the middle of the voxels file: verify names a voxel and fails.
     let voxels = db.join("voxels.dray");
     let mut bytes = std::fs::read(&voxels).unwrap();
@@ -412,4 +439,71 @@ fn image_sizes_and_frame_counts_out_of_range_are_refused_with_the_config_words()
         text(&out)
     );
     assert!(!walk.exists());
+}
+
+/// `dray render`'s shading flags are checked by the functions that check
+/// the config and received messages, and refused in their words before the
+/// database is opened.
+#[test]
+fn shading_flags_out_of_range_are_refused_with_the_shared_words() {
+    let dir = tempfile::tempdir().unwrap();
+    let db = dir.path().join("none.db");
+    for (flag, value, words) in [
+        (
+            "--reflectance",
+            "1.5",
+            dray_protocol::check_reflectance(1.5).unwrap_err(),
+        ),
+        (
+            "--reflections",
+            "17",
+            dray_protocol::check_reflection_depth(17).unwrap_err(),
+        ),
+        (
+            "--light",
+            "0,0,0",
+            dray_protocol::check_light_dir([0.0; 3]).unwrap_err(),
+        ),
+    ] {
+        let out = dray(&["render", s(&db), flag, value]);
+        assert!(!out.status.success(), "{}", text(&out));
+        assert!(
+            text(&out).contains(&format!("error: {flag}: {words}")),
+            "{flag} {value}: {}",
+            text(&out)
+        );
+    }
+}
+
+/// The frames' directory of `cluster`, `node` and `sim` is `--save-frames`;
+/// `--frames` is only ever a count (`demo`, `walkthrough`).
+#[test]
+fn frames_is_a_count_and_save_frames_a_directory() {
+    for args in [
+        &["cluster", "c.toml", "--frames", "out"][..],
+        &["sim", "c.toml", "--frames", "out"],
+        &[
+            "node", "--config", "c.toml", "--role", "display", "--frames", "out",
+        ],
+    ] {
+        let out = dray(args);
+        assert!(!out.status.success(), "{args:?}");
+        assert!(
+            text(&out).contains("unexpected argument '--frames'"),
+            "{args:?}: {}",
+            text(&out)
+        );
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let missing = dir.path().join("missing.toml");
+    let out = dray(&["sim", s(&missing), "--save-frames", s(dir.path())]);
+    assert!(!out.status.success());
+    // The flag is accepted: what fails is reading the config.
+    assert!(text(&out).contains("missing.toml"), "{}", text(&out));
+    let out = dray(&["demo", "--frames", "dir"]);
+    assert!(
+        text(&out).contains("invalid value 'dir' for '--frames"),
+        "{}",
+        text(&out)
+    );
 }

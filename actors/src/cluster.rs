@@ -112,6 +112,33 @@ pub struct RunSummary {
     pub stores: Vec<StoreSummary>,
 }
 
+impl RunSummary {
+    /// `dray sim`'s report: the display's summary with each client's
+    /// counts under `clients`.
+    pub fn to_json(&self) -> serde_json::Value {
+        let mut summary = self.display.to_json();
+        summary["clients"] = self.clients.iter().map(client_json).collect();
+        summary
+    }
+}
+
+/// A client's counts in a run's report.
+fn client_json(c: &ClientSummary) -> serde_json::Value {
+    serde_json::json!({
+        "tiles": c.tiles,
+        "rays": c.rays,
+        "misses": c.misses,
+        "fetched": c.fetched,
+        "bytes_fetched": c.bytes_fetched,
+        "bytes_raw": c.bytes_raw,
+        "refetched": c.refetched,
+        "evicted": c.evicted,
+        "peak_cache_bytes": c.peak_cache_bytes,
+        "prefetched": c.prefetched,
+        "voxels_lost": c.voxels_lost,
+    })
+}
+
 fn name(s: &str) -> Name {
     Name::new(s).expect("fixed node names are valid")
 }
@@ -801,5 +828,25 @@ async fn run_role(
             node: bus.node().to_string(),
             message: format!("no actors for role {role}"),
         }),
+    }
+}
+
+#[cfg(test)]
+mod report_tests {
+    use super::*;
+
+    #[test]
+    fn a_clients_report_names_each_count() {
+        let c = ClientSummary {
+            tiles: 3,
+            bytes_raw: 4096,
+            voxels_lost: 1,
+            ..ClientSummary::default()
+        };
+        let j = client_json(&c);
+        assert_eq!(j["tiles"], 3);
+        assert_eq!(j["bytes_raw"], 4096);
+        assert_eq!(j["voxels_lost"], 1);
+        assert_eq!(j.as_object().unwrap().len(), 11);
     }
 }

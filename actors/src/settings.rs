@@ -60,12 +60,7 @@ pub fn wire_settings(r: &dray_config::RenderConfig) -> wire::RenderSettings {
 
 /// The wire camera of a config camera.
 pub fn wire_camera(c: &dray_config::CameraConfig) -> wire::Camera {
-    wire::Camera {
-        eye: c.eye,
-        look: c.look,
-        up: c.up,
-        fov_y_deg: c.fov_y_deg,
-    }
+    c.to_wire()
 }
 
 /// The kernel's camera for a wire camera and image size.

@@ -56,8 +56,8 @@ use std::time::Duration;
 
 /// Largest tile side (the wire limit of a tile result).
 pub const MAX_TILE_SIZE: u32 = 256;
-/// Largest image side.
-pub const MAX_IMAGE_SIZE: u32 = 16384;
+/// Largest image side (the wire's limit).
+pub const MAX_IMAGE_SIZE: u32 = dray_protocol::MAX_IMAGE_SIDE;
 /// Most bytes of pixels the display may hold for the frames in flight
 /// (`display.frames_ahead` frames of `render.width` x `render.height`).
 pub const MAX_FRAMES_IN_FLIGHT_BYTES: u64 = 4 << 30;
@@ -65,13 +65,14 @@ pub const MAX_FRAMES_IN_FLIGHT_BYTES: u64 = 4 << 30;
 /// Checks an image side: `render.width` and `render.height` here, and
 /// `dray render`'s `--width` and `--height`; the error names `key`.
 pub fn check_image_side(key: &str, side: u32) -> Result<(), ConfigError> {
-    if side == 0 || side > MAX_IMAGE_SIZE {
-        return Err(invalid(
-            key,
-            format!("{side} is not in 1..={MAX_IMAGE_SIZE}"),
-        ));
-    }
-    Ok(())
+    dray_protocol::check_image_side(side).map_err(|m| invalid(key, m))
+}
+
+/// Checks a camera ([`dray_protocol::check_camera`]); the error names the
+/// field under `key` (e.g. `render.camera.up`).
+fn check_camera(key: &str, c: &CameraConfig) -> Result<(), ConfigError> {
+    dray_protocol::check_camera(&c.to_wire())
+        .map_err(|e| invalid(format!("{key}.{}", e.field.name()), e.message))
 }
 
 /// Bytes the display holds per pixel of a frame in flight: the colors,
@@ -168,6 +169,18 @@ pub struct CameraConfig {
     /// Vertical field of view, degrees.
     #[serde(default = "default_fov")]
     pub fov_y_deg: f32,
+}
+
+impl CameraConfig {
+    /// The camera as the messages carry it.
+    pub fn to_wire(&self) -> dray_protocol::Camera {
+        dray_protocol::Camera {
+            eye: self.eye,
+            look: self.look,
+            up: self.up,
+            fov_y_deg: self.fov_y_deg,
+        }
+    }
 }
 
 fn default_up() -> [f32; 3] {
@@ -690,46 +703,6 @@ fn parse_addr(key: &str, s: &str) -> Result<SocketAddr, ConfigError> {
     })
 }
 
-fn check_camera(key: &str, c: &CameraConfig) -> Result<(), ConfigError> {
-    for (name, v) in [("eye", c.eye), ("look", c.look), ("up", c.up)] {
-        if !v.iter().all(|x| x.is_finite()) {
-            return Err(invalid(
-                format!("{key}.{name}"),
-                "holds a non-finite number",
-            ));
-        }
-    }
-    if !(c.fov_y_deg > 0.0 && c.fov_y_deg < 180.0) {
-        return Err(invalid(
-            format!("{key}.fov_y_deg"),
-            format!("{} is not in (0, 180) degrees", c.fov_y_deg),
-        ));
-    }
-    if c.eye == c.look {
-        return Err(invalid(format!("{key}.look"), "equals the eye position"));
-    }
-    // The same test as the kernel's camera check, so a config that passes
-    // never makes a camera the clients refuse.
-    let w = std::array::from_fn::<f32, 3, _>(|k| c.look[k] - c.eye[k]);
-    let u = c.up;
-    let cross = [
-        w[1] * u[2] - w[2] * u[1],
-        w[2] * u[0] - w[0] * u[2],
-        w[0] * u[1] - w[1] * u[0],
-    ];
-    let len2 = |v: [f32; 3]| v.iter().map(|x| x * x).sum::<f32>();
-    if len2(u) == 0.0 {
-        return Err(invalid(format!("{key}.up"), "is the zero vector"));
-    }
-    if len2(cross) <= 1e-12 * len2(w) * len2(u) {
-        return Err(invalid(
-            format!("{key}.up"),
-            "is parallel to the view direction (look - eye)",
-        ));
-    }
-    Ok(())
-}
-
 impl Config {
     /// Reads, parses and validates a config file; relative paths in it are
     /// made relative to the file's directory.
@@ -783,12 +756,8 @@ impl Config {
                 format!("{} is not in 1..={MAX_TILE_SIZE}", r.tile_size),
             ));
         }
-        if r.reflection_depth > 16 {
-            return Err(invalid(
-                "render.reflection_depth",
-                format!("{} is over 16", r.reflection_depth),
-            ));
-        }
+        dray_protocol::check_reflection_depth(u32::from(r.reflection_depth))
+            .map_err(|m| invalid("render.reflection_depth", m))?;
         let tiles =
             r.width.div_ceil(r.tile_size) as usize * r.height.div_ceil(r.tile_size) as usize;
         if tiles > dray_protocol::MAX_FRAME_TILES {
@@ -802,18 +771,9 @@ impl Config {
             ));
         }
         check_camera("render.camera", &r.camera)?;
-        if !r.light_dir.iter().all(|x| x.is_finite()) || r.light_dir == [0.0; 3] {
-            return Err(invalid(
-                "render.light_dir",
-                "must be a finite, non-zero direction",
-            ));
-        }
-        if !(0.0..=1.0).contains(&r.reflectance) {
-            return Err(invalid(
-                "render.reflectance",
-                format!("{} is not in [0, 1]", r.reflectance),
-            ));
-        }
+        dray_protocol::check_light_dir(r.light_dir).map_err(|m| invalid("render.light_dir", m))?;
+        dray_protocol::check_reflectance(r.reflectance)
+            .map_err(|m| invalid("render.reflectance", m))?;
         if r.frames == 0 || r.frames > 1_000_000 {
             return Err(invalid(
                 "render.frames",

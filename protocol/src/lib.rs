@@ -21,11 +21,16 @@
 //! lists of structures are [`BoundedVec`]s that refuse more than their bound.
 
 mod bounded;
+mod checks;
 mod messages;
 mod name;
 mod pixels;
 
 pub use bounded::{Blob, BoundedVec, PackedF32, PackedU32};
+pub use checks::{
+    check_camera, check_image_side, check_light_dir, check_reflectance, check_reflection_depth,
+    CameraError, CameraField,
+};
 pub use messages::*;
 pub use name::{Name, NameError, MAX_NAME_LEN};
 pub use pixels::{Compression, PixelError, Pixels, TilePixels};

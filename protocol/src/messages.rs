@@ -2,8 +2,8 @@
 
 use crate::{
     Blob, BoundedVec, Name, PackedF32, PackedU32, ProtocolError, Role, TilePixels, VoxelId,
-    BULK_FRAME_MAX, ENVELOPE_OVERHEAD, MAX_IMAGE_SIDE, MAX_PREFETCH_IDS, MAX_REFLECTION_DEPTH,
-    MAX_STATS_CLIENTS, MAX_TEXT_LEN, MAX_TILE_SIDE,
+    BULK_FRAME_MAX, ENVELOPE_OVERHEAD, MAX_PREFETCH_IDS, MAX_STATS_CLIENTS, MAX_TEXT_LEN,
+    MAX_TILE_SIDE,
 };
 use serde::{Deserialize, Serialize};
 
@@ -691,24 +691,8 @@ impl MessageKind {
     }
 }
 
-fn finite(v: &[f32]) -> bool {
-    v.iter().all(|x| x.is_finite())
-}
-
 fn check_camera(c: &Camera) -> Result<(), String> {
-    if !(finite(&c.eye) && finite(&c.look) && finite(&c.up) && c.fov_y_deg.is_finite()) {
-        return Err("camera has a non-finite value".into());
-    }
-    if !(c.fov_y_deg > 0.0 && c.fov_y_deg < 180.0) {
-        return Err(format!(
-            "field of view {} is outside (0, 180) degrees",
-            c.fov_y_deg
-        ));
-    }
-    if c.eye == c.look {
-        return Err("camera eye and look point coincide".into());
-    }
-    Ok(())
+    crate::check_camera(c).map_err(|e| format!("camera {e}"))
 }
 
 fn check_tile(t: &TileRect, width: u32, height: u32) -> Result<(), String> {
@@ -730,23 +714,12 @@ fn check_tile(t: &TileRect, width: u32, height: u32) -> Result<(), String> {
 }
 
 fn check_frame(width: u32, height: u32, s: &RenderSettings) -> Result<(), String> {
-    if width == 0 || height == 0 || width > MAX_IMAGE_SIDE || height > MAX_IMAGE_SIDE {
-        return Err(format!(
-            "image of {width}x{height} is empty or larger than {MAX_IMAGE_SIDE}"
-        ));
-    }
-    if s.reflection_depth > MAX_REFLECTION_DEPTH {
-        return Err(format!(
-            "reflection depth {} is over {MAX_REFLECTION_DEPTH}",
-            s.reflection_depth
-        ));
-    }
-    if !finite(&s.light_dir) || s.light_dir == [0.0; 3] {
-        return Err("light direction is zero or has a non-finite value".into());
-    }
-    if !(0.0..=1.0).contains(&s.reflectance) {
-        return Err(format!("reflectance {} is not in [0, 1]", s.reflectance));
-    }
+    crate::check_image_side(width).map_err(|e| format!("image width {e}"))?;
+    crate::check_image_side(height).map_err(|e| format!("image height {e}"))?;
+    crate::check_reflection_depth(u32::from(s.reflection_depth))
+        .map_err(|e| format!("reflection depth {e}"))?;
+    crate::check_light_dir(s.light_dir).map_err(|e| format!("light direction {e}"))?;
+    crate::check_reflectance(s.reflectance).map_err(|e| format!("reflectance {e}"))?;
     if let Reflective::Ids { start, end } = s.reflective {
         if start >= end {
             return Err(format!("reflective id range {start}..{end} is empty"));
@@ -762,12 +735,8 @@ fn check_owners(o: &TileOwners) -> Result<(), String> {
             o.tile_size
         ));
     }
-    if o.width == 0 || o.height == 0 || o.width > MAX_IMAGE_SIDE || o.height > MAX_IMAGE_SIDE {
-        return Err(format!(
-            "image of {}x{} is empty or too large",
-            o.width, o.height
-        ));
-    }
+    crate::check_image_side(o.width).map_err(|e| format!("image width {e}"))?;
+    crate::check_image_side(o.height).map_err(|e| format!("image height {e}"))?;
     let tiles = o.width.div_ceil(o.tile_size) as usize * o.height.div_ceil(o.tile_size) as usize;
     if tiles > crate::MAX_FRAME_TILES {
         return Err(format!(

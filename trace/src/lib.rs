@@ -6,6 +6,8 @@
 //! - [`packet`]: SIMD ray packets and the suspendable two-level traversal.
 //! - [`render`]: frames in tiles on threads, shadows, shading.
 //! - [`tile`]: one tile, fully shaded, while voxels arrive over time.
+//! - [`report`]: the figures of a rendered view or camera path, as text
+//!   and JSON.
 //! - [`clock`]: a cheap clock for timing single packets.
 //! - [`image`]: PNG, and the depth/primitive-id comparison formats.
 
@@ -16,5 +18,6 @@ mod job;
 pub mod packet;
 mod quad;
 pub mod render;
+pub mod report;
 pub mod scene;
 pub mod tile;

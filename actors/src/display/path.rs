@@ -391,6 +391,14 @@ impl CameraPath {
         CameraPath { frames, keyframes }
     }
 
+    /// Writes the path file to `out` through a temporary file renamed over
+    /// it, so that no reader sees half a path.
+    pub fn save(&self, out: &Path) -> std::io::Result<()> {
+        let tmp = out.with_extension("toml.tmp");
+        std::fs::write(&tmp, self.to_toml())?;
+        std::fs::rename(&tmp, out)
+    }
+
     /// The path as a path file (what [`CameraPath::load`] reads).
     pub fn to_toml(&self) -> String {
         let v = |a: [f32; 3]| format!("[{:?}, {:?}, {:?}]", a[0], a[1], a[2]);

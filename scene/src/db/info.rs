@@ -49,7 +49,7 @@ impl DbInfo {
             format_version: m.format_version,
             input_triangles: m.input_triangles,
             stored_triangles: m.stored_triangles,
-            replication_factor: m.stored_triangles as f64 / m.input_triangles.max(1) as f64,
+            replication_factor: m.replication_factor(),
             voxels: n,
             empty_leaves: m
                 .nodes

@@ -113,6 +113,12 @@ pub enum ManifestError {
 }
 
 impl Manifest {
+    /// Stored triangles per input triangle: how often the BSP copied a
+    /// triangle into more than one voxel.
+    pub fn replication_factor(&self) -> f64 {
+        self.stored_triangles as f64 / self.input_triangles.max(1) as f64
+    }
+
     pub fn encode(&self) -> Vec<u8> {
         let payload = postcard::to_allocvec(self).expect("in-memory manifest encodes");
         let mut out = Vec::with_capacity(HEADER_BYTES + payload.len());

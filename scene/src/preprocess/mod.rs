@@ -157,6 +157,27 @@ pub struct PreprocessReport {
     pub import_seconds: f64,
 }
 
+impl PreprocessReport {
+    /// Input triangles per second over the whole build.
+    pub fn triangles_per_second(&self) -> f64 {
+        self.manifest.input_triangles as f64 / self.seconds
+    }
+
+    /// The line `dray preprocess` prints about the database built at `out`.
+    pub fn summary(&self, out: &Path) -> String {
+        let m = &self.manifest;
+        format!(
+            "{}: {} triangles -> {} voxels in {:.1} s ({:.2} M triangles/s), replication {:.3}",
+            out.display(),
+            m.input_triangles,
+            m.voxels.len(),
+            self.seconds,
+            self.triangles_per_second() / 1e6,
+            m.replication_factor()
+        )
+    }
+}
+
 /// The input spill file, repeated on the copy grid.
 struct CopiedInput {
     spill: SpillFile,
@@ -512,4 +533,46 @@ fn commit(built: PathBuf, out: &Path) -> Result<(), PreprocessError> {
         std::fs::rename(&built, out).map_err(fail)?;
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod report_tests {
+    use super::*;
+    use crate::generate::{generate_plant, PlantParams};
+
+    #[test]
+    fn the_summary_gives_the_rate_and_the_replication() {
+        let dir = tempfile::tempdir().unwrap();
+        let ply = dir.path().join("plant.ply");
+        let params = PlantParams {
+            triangles: crate::generate::MIN_TRIANGLES,
+            seed: 1,
+        };
+        generate_plant(&params, &ply, &mut |_| {}).unwrap();
+        let out = dir.path().join("plant.vdb");
+        let opts = PreprocessOptions::new(vec![ply], out.clone());
+        let report = preprocess(&opts, &Progress::hidden()).unwrap();
+        let m = &report.manifest;
+        assert!(m.replication_factor() >= 1.0);
+        assert_eq!(
+            m.replication_factor(),
+            m.stored_triangles as f64 / m.input_triangles as f64
+        );
+        let rate = m.input_triangles as f64 / report.seconds;
+        assert_eq!(report.triangles_per_second(), rate);
+        let line = report.summary(&out);
+        assert!(
+            line.starts_with(&format!(
+                "{}: {} triangles -> {} voxels in ",
+                out.display(),
+                m.input_triangles,
+                m.voxels.len()
+            )),
+            "{line}"
+        );
+        assert!(
+            line.ends_with(&format!("replication {:.3}", m.replication_factor())),
+            "{line}"
+        );
+    }
 }
