@@ -6,8 +6,8 @@ mod cli;
 use anyhow::{bail, Context, Result};
 use clap::Parser;
 use cli::{CertsAction, Cli, Command, GenerateModel, RenderArgs};
-use dray_actors::cluster::{NodeOutcome, RunOptions};
 use dray_actors::display::path::CameraPath;
+use dray_actors::nodes::{NodeOutcome, RunOptions};
 use dray_protocol::{CameraField, Role};
 use dray_scene::db::info::DbInfo;
 use dray_scene::db::verify::verify;
@@ -15,10 +15,10 @@ use dray_scene::db::Database;
 use dray_scene::generate::{generate_plant, PlantParams};
 use dray_scene::preprocess::{preprocess, PreprocessOptions};
 use dray_scene::progress::Progress;
+use dray_trace::accel::{ResidentSource, TopLevel};
 use dray_trace::camera::Camera;
 use dray_trace::render::{render_repeated, RenderSettings};
 use dray_trace::report::{render_path, PathReport, ViewReport};
-use dray_trace::scene::{ResidentSource, TopLevel};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
@@ -187,7 +187,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
             json,
         } => {
             let cfg = dray_config::Config::load(&config)?;
-            dray_actors::cluster::preflight(&cfg, None)?;
+            dray_actors::nodes::preflight(&cfg, None)?;
             let mut extra = Vec::new();
             if let Some(isa) = isa {
                 extra.extend(["--isa".to_string(), isa.name().to_string()]);
@@ -197,8 +197,9 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 extra.extend(["--save-frames".to_string(), dir.display().to_string()]);
             }
             let exe = std::env::current_exe().context("finding the dray binary")?;
-            let report =
-                runtime()?.block_on(dray_actors::launch::cluster(&exe, &config, &cfg, &extra))?;
+            let report = runtime()?.block_on(dray_actors::supervisor::cluster(
+                &exe, &config, &cfg, &extra,
+            ))?;
             print_report(&report.summary, &report.events, json);
         }
         Command::Node {
@@ -234,12 +235,12 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 .enable_all()
                 .build()
                 .context("starting the async runtime")?;
-            let outcome = match rt.block_on(dray_actors::cluster::node(&cfg, role, index, &opts)) {
+            let outcome = match rt.block_on(dray_actors::nodes::node(&cfg, role, index, &opts)) {
                 Ok(outcome) => outcome,
-                Err(e @ dray_actors::cluster::ClusterError::AddressInUse { .. }) => {
+                Err(e @ dray_actors::nodes::ClusterError::AddressInUse { .. }) => {
                     // Starting this node again would fail the same way.
                     eprintln!("error: {e}");
-                    return Ok(ExitCode::from(dray_actors::launch::EXIT_NO_RESTART));
+                    return Ok(ExitCode::from(dray_actors::supervisor::EXIT_NO_RESTART));
                 }
                 Err(e) => return Err(e.into()),
             };
@@ -264,7 +265,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 isa,
                 ..RunOptions::default()
             };
-            let run = runtime()?.block_on(dray_actors::cluster::sim(&cfg, &opts))?;
+            let run = runtime()?.block_on(dray_actors::nodes::sim(&cfg, &opts))?;
             print_report(&run.to_json(), &[], json);
         }
         Command::Experiment {
@@ -432,7 +433,7 @@ fn demo(config: &Path, triangles: u64, frames: u32) -> Result<()> {
         }
     }
     let exe = std::env::current_exe().context("finding the dray binary")?;
-    let report = runtime()?.block_on(dray_actors::launch::cluster(&exe, config, &cfg, &[]))?;
+    let report = runtime()?.block_on(dray_actors::supervisor::cluster(&exe, config, &cfg, &[]))?;
     print_report(&report.summary, &report.events, false);
     if let Some(out) = &cfg.display.output {
         println!(

@@ -6,7 +6,7 @@
 mod common;
 
 use common::*;
-use dray_actors::cluster::{frame_cameras, sim, RunOptions};
+use dray_actors::nodes::{frame_cameras, sim, RunOptions};
 
 fn check_frames(cfg: &dray_config::Config, clients: u32) {
     let opts = RunOptions {

@@ -7,12 +7,12 @@
 mod common;
 
 use common::*;
-use dray_actors::cluster::{frame_cameras, sim, RunOptions};
+use dray_actors::nodes::{frame_cameras, sim, RunOptions};
 use dray_actors::settings::{kernel_camera, kernel_settings, wire_settings};
 use dray_scene::db::manifest::VOXELS_FILE;
 use dray_scene::db::Database;
+use dray_trace::accel::{RecordingSource, ResidentSource, TopLevel};
 use dray_trace::render::{render, Isa};
-use dray_trace::scene::{RecordingSource, ResidentSource, TopLevel};
 use std::io::{Read, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
@@ -72,7 +72,7 @@ fn flip_middle_byte(db: &Path, id: u32) {
 /// generous bound instead of hanging it.
 fn sim_to_end(
     cfg: &dray_config::Config,
-) -> Result<dray_actors::cluster::RunSummary, dray_actors::cluster::ClusterError> {
+) -> Result<dray_actors::nodes::RunSummary, dray_actors::nodes::ClusterError> {
     rt().block_on(async {
         tokio::time::timeout(Duration::from_secs(120), sim(cfg, &RunOptions::default()))
             .await

@@ -32,13 +32,13 @@
 //! [`Message::TileOwners`]: dray_protocol::Message::TileOwners
 
 pub mod client;
-pub mod cluster;
 pub mod display;
-pub mod launch;
 pub mod names;
+pub mod nodes;
 pub mod scheduler;
 pub mod settings;
 pub mod store;
+pub mod supervisor;
 
 pub use names::Shard;
 

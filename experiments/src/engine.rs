@@ -2,7 +2,7 @@
 //! reports (or, for `render`, the same figures of the frames it traced).
 
 use crate::spec::Engine;
-use dray_actors::cluster::RunOptions;
+use dray_actors::nodes::RunOptions;
 use dray_config::Config;
 use std::path::Path;
 use std::time::Instant;
@@ -38,7 +38,7 @@ pub(crate) fn run(
     let summary = match engine {
         Engine::Sim => {
             let run = rt
-                .block_on(dray_actors::cluster::sim(cfg, &RunOptions::default()))
+                .block_on(dray_actors::nodes::sim(cfg, &RunOptions::default()))
                 .map_err(|e| RunFailure::Failed(e.to_string()))?;
             run.display.to_json()
         }
@@ -48,9 +48,14 @@ pub(crate) fn run(
                 RunFailure::Failed("engine \"cluster\" needs the dray binary to start nodes".into())
             })?;
             let report = rt
-                .block_on(dray_actors::launch::cluster(dray, config_file, cfg, &[]))
+                .block_on(dray_actors::supervisor::cluster(
+                    dray,
+                    config_file,
+                    cfg,
+                    &[],
+                ))
                 .map_err(|e| match e {
-                    dray_actors::launch::LaunchError::Interrupted => RunFailure::Interrupted,
+                    dray_actors::supervisor::LaunchError::Interrupted => RunFailure::Interrupted,
                     e => RunFailure::Failed(e.to_string()),
                 })?;
             report.summary
@@ -79,9 +84,9 @@ fn render(cfg: &Config) -> Result<serde_json::Value, String> {
     let db = dray_scene::db::Database::open(&cfg.scene.database)
         .map_err(|e| format!("scene.database: {e}"))?;
     let source =
-        dray_trace::scene::ResidentSource::load(&db).map_err(|e| format!("scene.database: {e}"))?;
-    let top = dray_trace::scene::TopLevel::from_manifest(&db.manifest);
-    let cameras = dray_actors::cluster::frame_cameras(cfg).map_err(|e| e.to_string())?;
+        dray_trace::accel::ResidentSource::load(&db).map_err(|e| format!("scene.database: {e}"))?;
+    let top = dray_trace::accel::TopLevel::from_manifest(&db.manifest);
+    let cameras = dray_actors::nodes::frame_cameras(cfg).map_err(|e| e.to_string())?;
     let threads = (cfg.clients.count as usize).saturating_mul(cfg.clients.threads as usize);
     let settings = kernel_settings(
         &wire_settings(&cfg.render),

@@ -8,8 +8,8 @@ use dray_config::Config;
 use dray_protocol::Camera;
 use dray_scene::db::Database;
 use dray_scene::generate::suggested_views;
+use dray_trace::accel::{ResidentSource, TopLevel};
 use dray_trace::render::{render, Isa};
-use dray_trace::scene::{ResidentSource, TopLevel};
 use std::path::{Path, PathBuf};
 
 pub use dray_testkit::free_ports;

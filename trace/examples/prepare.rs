@@ -13,7 +13,7 @@
 //! (VOXELS: the first that many voxels with triangles, default 400.)
 use dray_scene::db::Database;
 use dray_scene::voxel::Voxel;
-use dray_trace::scene::PreparedVoxel;
+use dray_trace::accel::PreparedVoxel;
 use std::time::Instant;
 
 fn main() -> anyhow::Result<()> {

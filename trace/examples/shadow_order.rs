@@ -30,7 +30,7 @@ use dray_trace::render::{render, RenderSettings};
 /// As the kernel's shadow rays start (`render::SHADOW_EPS`, times the
 /// scene's diagonal).
 const SHADOW_EPS: f32 = 1e-4;
-use dray_trace::scene::{ResidentSource, TopLevel};
+use dray_trace::accel::{ResidentSource, TopLevel};
 use glam::Vec3;
 use std::time::Instant;
 

@@ -14,13 +14,13 @@
 // shape LLVM vectorizes.
 #![allow(clippy::needless_range_loop)]
 
+use crate::accel::{TopLevel, VoxelSource};
 use crate::camera::CameraBasis;
 use crate::clock;
 use crate::packet::{Occluder, Packet, Step, Traversal};
 use crate::render::{
     voxel_color, FrameStats, Isa, RenderSettings, AMBIENT, BACKGROUND, SHADOW_EPS,
 };
-use crate::scene::{TopLevel, VoxelSource};
 use crate::tile::Rect;
 use glam::Vec3;
 
@@ -403,7 +403,7 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
         let cur = &self.cur;
         // The voxel of the last surface looked up: neighbouring lanes
         // mostly hit the same one.
-        let mut last: Option<crate::scene::VoxelRef<'_>> = None;
+        let mut last: Option<crate::accel::VoxelRef<'_>> = None;
         for i in self.lane..N {
             if self.weight[i] == 0.0 {
                 continue;
@@ -457,7 +457,7 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
     #[inline(always)]
     fn prefetch_surfaces(&self, source: &dyn VoxelSource) {
         let cur = &self.cur;
-        let mut last: Option<crate::scene::VoxelRef<'_>> = None;
+        let mut last: Option<crate::accel::VoxelRef<'_>> = None;
         for i in self.lane..N {
             if self.weight[i] == 0.0 || !cur.hit(i) {
                 continue;

@@ -1,8 +1,9 @@
 //! dray-trace: the ray tracing kernel.
 //!
 //! - [`camera`]: the pinhole camera of docs/design.md.
-//! - [`scene`]: the high-level BSP and voxels in the kernel's layout, and the
-//!   [`scene::VoxelSource`] the kernel asks for voxels.
+//! - [`accel`]: the acceleration structures the kernel traverses: the
+//!   high-level BSP and voxels in the kernel's layout, and the
+//!   [`accel::VoxelSource`] the kernel asks for voxels.
 //! - [`packet`]: SIMD ray packets and the suspendable two-level traversal.
 //! - [`render`]: frames in tiles on threads, shadows, shading.
 //! - [`tile`]: one tile, fully shaded, while voxels arrive over time.
@@ -11,6 +12,7 @@
 //! - [`clock`]: a cheap clock for timing single packets.
 //! - [`image`]: PNG, and the depth/primitive-id comparison formats.
 
+pub mod accel;
 pub mod camera;
 pub mod clock;
 pub mod image;
@@ -19,5 +21,4 @@ pub mod packet;
 mod quad;
 pub mod render;
 pub mod report;
-pub mod scene;
 pub mod tile;

@@ -29,8 +29,8 @@
 #[cfg(target_arch = "x86_64")]
 mod group;
 
+use crate::accel::{prefetch, PreparedVoxel, TopLevel, TopNode, VoxelSource, WideNode};
 use crate::quad;
-use crate::scene::{prefetch, PreparedVoxel, TopLevel, TopNode, VoxelSource, WideNode};
 use glam::Vec3;
 
 /// Relative widening of every culling interval: slab tests round, and a

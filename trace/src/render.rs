@@ -7,12 +7,12 @@
 // shape LLVM vectorizes.
 #![allow(clippy::needless_range_loop)]
 
+use crate::accel::{TopLevel, VoxelSource};
 use crate::camera::{Camera, CameraBasis};
 use crate::clock::Calibration;
 pub use crate::job::depth_grey;
 use crate::job::{Ctx, PacketJob, Region};
 use crate::packet::Step;
-use crate::scene::{TopLevel, VoxelSource};
 use crate::tile::Rect;
 use glam::Vec3;
 use std::sync::atomic::{AtomicUsize, Ordering};

@@ -2,9 +2,9 @@
 //! passes, and a camera path's frame rate and working sets, each as a line
 //! of text and as a JSON object.
 
+use crate::accel::{RecordingSource, ResidentSource, TopLevel, VoxelSource};
 use crate::camera::Camera;
 use crate::render::{render, FrameStats, Isa, Passes, RenderSettings};
-use crate::scene::{RecordingSource, ResidentSource, TopLevel, VoxelSource};
 use serde_json::{json, Value};
 
 /// One view rendered in timed passes ([`crate::render::render_repeated`]).

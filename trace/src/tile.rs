@@ -5,11 +5,11 @@
 //! the same resumable per-packet state machine (`job.rs`) as
 //! [`crate::render::render`], so the pixels are the frame's, bit for bit.
 
+use crate::accel::{PreparedVoxel, TopLevel, VoxelRef, VoxelSource};
 use crate::camera::Camera;
 use crate::job::{Ctx, PacketJob, Region};
 use crate::packet::Step;
 use crate::render::{FrameStats, Isa, Packets, RenderSettings};
-use crate::scene::{PreparedVoxel, TopLevel, VoxelRef, VoxelSource};
 use futures::future::BoxFuture;
 use futures::stream::{FuturesUnordered, StreamExt};
 use std::collections::HashMap;

@@ -6,10 +6,10 @@ mod common;
 use common::{cameras, isas, plant, real_model, settings, Model};
 use dray_scene::geometry::{closer, intersect_triangle, Hit, Ray};
 use dray_scene::rng::Rng;
+use dray_trace::accel::{ResidentSource, VoxelRef, VoxelSource};
 use dray_trace::camera::Camera;
 use dray_trace::packet::{Occluder, Packet, Step, Traversal};
 use dray_trace::render::{render, Frame, Isa, Packets, RenderSettings};
-use dray_trace::scene::{ResidentSource, VoxelRef, VoxelSource};
 use glam::Vec3;
 use std::collections::{HashSet, VecDeque};
 use std::sync::Mutex;
@@ -454,7 +454,7 @@ fn shadow_packets_trying_an_occluder_first_equal_brute_force() {
 /// leaves out voxels the kernel only prefetched.
 #[test]
 fn recorded_working_set_holds_every_hit_voxel() {
-    use dray_trace::scene::RecordingSource;
+    use dray_trace::accel::RecordingSource;
     let m = plant(20_000);
     let voxels = m.db.manifest.voxels.len();
     for (k, cam) in cameras(&m, 96, 72).iter().enumerate() {

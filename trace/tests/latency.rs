@@ -1,10 +1,10 @@
 //! Latency hiding on tokio's paused clock: a tile whose packets need 16
 //! different missing voxels, each delivered 50 ms after its request.
 
+use dray_trace::accel::{PreparedVoxel, ResidentSource, TopLevel, VoxelRef, VoxelSource};
 use dray_trace::camera::Camera;
 use dray_trace::render::Isa;
 use dray_trace::render::RenderSettings;
-use dray_trace::scene::{PreparedVoxel, ResidentSource, TopLevel, VoxelRef, VoxelSource};
 use dray_trace::tile::{render_tile, LoadError, MissMode, Rect, TileImage, VoxelLoader};
 use futures::future::BoxFuture;
 use glam::Vec3;

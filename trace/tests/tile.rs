@@ -6,9 +6,9 @@ mod common;
 
 use common::{cameras, isas, plant, real_model, settings, Model};
 use dray_scene::rng::Rng;
+use dray_trace::accel::{PreparedVoxel, ResidentSource, VoxelRef, VoxelSource};
 use dray_trace::camera::Camera;
 use dray_trace::render::{render, Frame, Isa, Packets, ReflectRule, RenderSettings};
-use dray_trace::scene::{PreparedVoxel, ResidentSource, VoxelRef, VoxelSource};
 use dray_trace::tile::{render_tile, LoadError, MissMode, Rect, TileImage, VoxelLoader};
 use futures::future::BoxFuture;
 use std::collections::VecDeque;

@@ -12,7 +12,7 @@
 //! everything is in use the cache goes over budget until some of it is
 //! released, and [`VoxelCache::peak_bytes`] records how far.
 
-use dray_trace::scene::PreparedVoxel;
+use dray_trace::accel::PreparedVoxel;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 
@@ -205,7 +205,7 @@ mod tests {
         Arc::new(PreparedVoxel {
             id,
             nodes: Vec::new(),
-            frame: dray_trace::scene::Frame::EMPTY,
+            frame: dray_trace::accel::Frame::EMPTY,
             corners: Vec::new(),
             ids: Vec::new(),
             triangles: Vec::new(),

@@ -29,7 +29,7 @@ use dray_protocol::{Address, Message, Name, VoxelError, VoxelLost};
 use dray_scene::db::manifest::{Manifest, VoxelEntry};
 use dray_scene::geometry::Aabb;
 use dray_scene::voxel::Voxel;
-use dray_trace::scene::{PreparedVoxel, VoxelRef, VoxelSource};
+use dray_trace::accel::{PreparedVoxel, VoxelRef, VoxelSource};
 use dray_trace::tile::{LoadError, VoxelLoader};
 use futures::future::BoxFuture;
 use std::collections::{HashMap, VecDeque};

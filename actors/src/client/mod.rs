@@ -40,7 +40,7 @@ use cache::VoxelCache;
 use dray_protocol::{Address, Compression, FetchManifest, FetchVoxel, Message, MAX_REPORT_HITS};
 use dray_runtime::{ActorRef, Delivery, LinkMeter, Mailbox};
 use dray_scene::db::manifest::Manifest;
-use dray_trace::scene::TopLevel;
+use dray_trace::accel::TopLevel;
 use dray_trace::tile::MissMode;
 use loader::{Decoded, Shared};
 use state::{Client, Out};

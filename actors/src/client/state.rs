@@ -433,7 +433,7 @@ mod tests {
     use dray_protocol::TileRect;
     use dray_scene::db::manifest::BuildParams;
     use dray_scene::geometry::Aabb;
-    use dray_trace::scene::PreparedVoxel;
+    use dray_trace::accel::PreparedVoxel;
     use dray_trace::tile::{LoadError, Rect, TileImage};
     use std::time::Duration;
     use tokio::sync::oneshot;

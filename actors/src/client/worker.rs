@@ -6,9 +6,9 @@
 
 use super::loader::{Fetched, Shared, TileLoader};
 use dray_protocol::TileRect;
+use dray_trace::accel::TopLevel;
 use dray_trace::camera::Camera;
 use dray_trace::render::{PacketChooser, Packets, RenderSettings};
-use dray_trace::scene::TopLevel;
 use dray_trace::tile::{render_tile, LoadError, MissMode, Rect, TileImage};
 use futures::future::{select, Either};
 use futures::stream::{FuturesUnordered, StreamExt};

@@ -15,7 +15,7 @@ use dray_protocol::{
 use dray_runtime::{Delivery, Mailbox};
 use dray_scene::db::manifest::Manifest;
 use dray_scene::Ray;
-use dray_trace::scene::TopLevel;
+use dray_trace::accel::TopLevel;
 use glam::Vec3;
 use std::collections::HashMap;
 use std::sync::Arc;

@@ -14,9 +14,9 @@ use dray_protocol::{
 };
 use dray_runtime::{Bus, Delivery, InProcNet, Mailbox, Name, Role};
 use dray_scene::db::Database;
+use dray_trace::accel::{ResidentSource, TopLevel};
 use dray_trace::camera::Camera;
 use dray_trace::render::{render, Frame, Isa};
-use dray_trace::scene::{ResidentSource, TopLevel};
 use std::path::PathBuf;
 use std::time::Duration;
 use tokio::task::JoinHandle;

@@ -23,7 +23,7 @@
 //! [`GroupRays::children`]).
 
 use super::{edge_lane, prefetch_children, Packet, Shear, WIDEN};
-use crate::scene::{PreparedVoxel, WideNode};
+use crate::accel::{PreparedVoxel, WideNode};
 use std::arch::x86_64::*;
 
 /// Each node pushes at most 4 entries and the BVH is at most 64 binary

@@ -3,9 +3,9 @@
 
 use dray_scene::db::Database;
 use dray_scene::import::{import_model, ImportOptions};
+use dray_trace::accel::{ResidentSource, TopLevel};
 use dray_trace::camera::Camera;
 use dray_trace::render::{Isa, RenderSettings};
-use dray_trace::scene::{ResidentSource, TopLevel};
 use glam::Vec3;
 use std::path::Path;
 

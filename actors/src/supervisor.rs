@@ -327,7 +327,7 @@ pub async fn cluster(
     // An interactive display runs until Ctrl-C: the first one (which the
     // nodes get too, from the terminal) waits for the display's summary,
     // a second one or STOP_TIMEOUT stops everything at once.
-    let interactive = crate::cluster::interactive(cfg);
+    let interactive = crate::nodes::interactive(cfg);
     let mut interrupted: Option<tokio::time::Instant> = None;
     let mut tick = tokio::time::interval(Duration::from_millis(50));
     // The node whose death ended the run, to name its last log lines.

@@ -1,6 +1,6 @@
 //! Starting the actors of one config: every node in this process over the
 //! in-process transport ([`sim`]), or one node over QUIC ([`node`]). The
-//! process supervisor of `dray cluster` is in [`crate::launch`].
+//! process supervisor of `dray cluster` is in [`crate::supervisor`].
 //!
 //! Which node runs what, and who dials whom (the bus convention: the
 //! dialer redials when a connection is lost):
