@@ -2,24 +2,30 @@
 //! a coarse grid of rays through the high-level BSP, and tells each client
 //! which voxels the tiles it will probably get next will enter, so that its
 //! loader fetches them before the tiles arrive.
+//!
+//! Shape: [`state::Prefetcher`] owns the manifest's BSP, the recent cameras,
+//! the last tile owners and the manifest requests; its handlers (a camera
+//! update, tile owners, the manifest, a store up, the manifest timer, a
+//! finished plan, a hint sent) change it and push effects ([`state::Out`]:
+//! ask a store for the manifest, plan a frame's hints, send a hint);
+//! [`run_prefetcher`] receives, calls the handler and carries the effects
+//! out, planning on the blocking pool. The planning itself ([`plan_hints`],
+//! [`recipients`], [`predict_camera`]) is pure and lives here.
+
+mod state;
 
 use super::policy::{self, LastFrame, TilePolicy};
 use super::tiles::TileGrid;
-use crate::names::{StoreRoutes, CLIENT};
+use crate::names::StoreRoutes;
 use crate::settings::kernel_camera;
 use crate::ActorError;
-use dray_protocol::{
-    Address, Camera, FetchManifest, Message, Name, PackedU32, PrefetchHint, TileOwners,
-    MAX_PREFETCH_IDS,
-};
+use dray_protocol::{Camera, FetchManifest, Message, Name, TileOwners, MAX_PREFETCH_IDS};
 use dray_runtime::{Delivery, Mailbox};
-use dray_scene::db::manifest::Manifest;
 use dray_scene::Ray;
 use dray_trace::accel::TopLevel;
 use glam::Vec3;
+use state::{Out, Prefetcher};
 use std::collections::HashMap;
-use std::sync::Arc;
-use std::time::Duration;
 use tokio::time::Instant;
 use tracing::{debug, info, warn};
 
@@ -67,13 +73,6 @@ pub const WARM_STRIDE: u64 = 4;
 pub fn plans_frame(quiet: u32, next: u64) -> bool {
     quiet < WARM_AFTER || next.is_multiple_of(WARM_STRIDE)
 }
-
-/// How long a store has to answer [`FetchManifest`] before the next is asked.
-const MANIFEST_TIMEOUT: Duration = Duration::from_secs(2);
-
-/// Cameras kept to find the one of the frame whose tile owners arrive
-/// (the display runs a few frames ahead of the last completed one).
-const RECENT_CAMERAS: usize = 16;
 
 /// The camera of frame `next` predicted from the last one or two: eye and
 /// look point extrapolated linearly (per frame number), the rest as the
@@ -235,95 +234,6 @@ pub fn plan_hints(
         .collect()
 }
 
-struct Prefetcher {
-    opts: PrefetcherOptions,
-    top: Option<Arc<TopLevel>>,
-    owners: Option<TileOwners>,
-    /// The camera of the `owners` frame, if it is among the recent ones.
-    owners_camera: Option<Camera>,
-    /// The last two cameras, oldest first.
-    cams: Vec<(u64, Camera)>,
-    /// The recent cameras, oldest first, at most [`RECENT_CAMERAS`].
-    recent: std::collections::VecDeque<(u64, Camera)>,
-    hinted_for: Option<u64>,
-    /// Completed frames in a row without a miss.
-    quiet: u32,
-    summary: PrefetcherSummary,
-}
-
-impl Prefetcher {
-    async fn hint(&mut self, mb: &Mailbox) {
-        let (Some(top), Some(owners), Some(&(seq, last))) =
-            (&self.top, &self.owners, self.cams.last())
-        else {
-            return;
-        };
-        let next = seq + 1;
-        if self.hinted_for == Some(next) {
-            return;
-        }
-        self.hinted_for = Some(next);
-        if !plans_frame(self.quiet, next) {
-            self.summary.frames_skipped += 1;
-            debug!(frame = next, quiet = self.quiet, "caches warm: no plan");
-            return;
-        }
-        let whole = owners.holds_model.as_slice();
-        if owners.clients.as_slice().iter().all(|c| whole.contains(c)) {
-            self.summary.frames_skipped += 1;
-            debug!(frame = next, "every client holds the model: no plan");
-            return;
-        }
-        let prev = (self.cams.len() == 2).then(|| (self.cams[0].0, &self.cams[0].1));
-        let camera = predict_camera(prev, (seq, &last), next);
-        if kernel_camera(&camera, 1, 1).check().is_err() {
-            debug!(frame = next, "no usable camera to predict from");
-            return;
-        }
-        // Thousands of rays through the BSP: on the blocking pool, not on
-        // the scheduler node's only thread, which hands out the tiles.
-        let (top, owners, then) = (top.clone(), owners.clone(), self.owners_camera);
-        let o = &self.opts;
-        let (w, h, step, per_ray) = (o.width, o.height, o.step, o.voxels_per_ray);
-        let policy = o.policy;
-        let planned = tokio::task::spawn_blocking(move || {
-            plan_hints(
-                policy,
-                &top,
-                (&owners, then.as_ref()),
-                &camera,
-                (w, h),
-                step,
-                per_ray,
-            )
-        })
-        .await;
-        let plan = match planned {
-            Ok(plan) => plan,
-            Err(e) => {
-                warn!(frame = next, "planning the prefetch failed: {e}");
-                return;
-            }
-        };
-        for (node, voxels) in plan {
-            let n = voxels.len() as u64;
-            let to = Address::new(node, Name::new(CLIENT).expect("valid actor name"));
-            let msg = Message::PrefetchHint(PrefetchHint {
-                frame: next,
-                voxels: PackedU32(voxels),
-            });
-            match mb.send(&to, msg).await {
-                Ok(()) => {
-                    self.summary.hints += 1;
-                    self.summary.voxels_hinted += n;
-                    debug!(frame = next, %to, voxels = n, "prefetch hint");
-                }
-                Err(e) => debug!(frame = next, %to, "cannot send a prefetch hint: {e}"),
-            }
-        }
-    }
-}
-
 /// Runs the prefetcher until [`Message::Shutdown`] (or the mailbox closes).
 /// It sends nothing until it has the manifest, a frame's tile owners and a
 /// camera.
@@ -331,94 +241,75 @@ pub async fn run_prefetcher(
     mut mb: Mailbox,
     opts: PrefetcherOptions,
 ) -> Result<PrefetcherSummary, ActorError> {
-    let stores: Vec<Address> = opts.stores.all().cloned().collect();
-    let mut p = Prefetcher {
-        opts,
-        top: None,
-        owners: None,
-        cams: Vec::new(),
-        recent: std::collections::VecDeque::new(),
-        owners_camera: None,
-        hinted_for: None,
-        quiet: 0,
-        summary: PrefetcherSummary::default(),
-    };
-    let mut asked = 0usize;
-    // When to ask (again) for the manifest; None once it is here.
-    let mut ask_at = Some(Instant::now());
+    let mut p = Prefetcher::new(opts, Instant::now());
+    let mut out = Vec::new();
     loop {
         tokio::select! {
             d = mb.recv() => match d {
-                None => return Ok(p.summary),
+                None => return Ok(p.summary().clone()),
                 Some(Delivery::Message { from, msg }) => match msg {
-                    Message::ManifestData(m) if p.top.is_none() => {
-                        match Manifest::decode(&m.data.0) {
-                            Ok(manifest) => {
-                                p.top = Some(Arc::new(TopLevel::from_manifest(&manifest)));
-                                ask_at = None;
-                                info!(voxels = manifest.voxels.len(), %from, "prefetcher has the manifest");
-                            }
-                            Err(e) => {
-                                warn!(%from, "unusable manifest, asking another store: {e}");
-                                ask_at = Some(Instant::now() + MANIFEST_TIMEOUT / 4);
-                            }
-                        }
+                    Message::ManifestData(m) => {
+                        p.manifest_data(&from, &m.data.0, Instant::now(), &mut out)
                     }
-                    Message::TileOwners(o) => {
-                        if p.owners.as_ref().is_none_or(|old| old.frame < o.frame) {
-                            p.quiet = if o.misses == 0 { p.quiet.saturating_add(1) } else { 0 };
-                            p.owners_camera =
-                                p.recent.iter().find(|(s, _)| *s == o.frame).map(|(_, c)| *c);
-                            p.owners = Some(o);
-                        }
-                    }
-                    Message::CameraUpdate(u) => {
-                        if p.cams.last().is_none_or(|(s, _)| *s < u.seq) {
-                            p.recent.push_back((u.seq, u.camera));
-                            if p.recent.len() > RECENT_CAMERAS {
-                                p.recent.pop_front();
-                            }
-                            p.cams.push((u.seq, u.camera));
-                            if p.cams.len() > 2 {
-                                p.cams.remove(0);
-                            }
-                        }
-                    }
+                    Message::TileOwners(o) => p.tile_owners(o, &mut out),
+                    Message::CameraUpdate(u) => p.camera_update(u, &mut out),
                     Message::Shutdown(r) => {
-                        info!(reason = %r.reason, hints = p.summary.hints,
-                            skipped = p.summary.frames_skipped, "prefetcher stops");
-                        return Ok(p.summary);
+                        let s = p.summary();
+                        info!(reason = %r.reason, hints = s.hints,
+                            skipped = s.frames_skipped, "prefetcher stops");
+                        return Ok(s.clone());
                     }
                     other => debug!(kind = other.kind().name(), %from, "prefetcher ignores"),
                 },
-                Some(Delivery::PeerUp { node, .. }) => {
-                    // A store (back) up while we still wait: ask it now.
-                    if p.top.is_none() {
-                        if let Some(i) = stores.iter().position(|s| s.node == node) {
-                            asked = i;
-                            ask_at = Some(Instant::now());
-                        }
-                    }
-                }
+                Some(Delivery::PeerUp { node, .. }) => p.peer_up(&node, Instant::now()),
                 Some(Delivery::PeerDown { .. }) => {}
             },
-            _ = crate::sleep_until_opt(ask_at) => {
-                let to = &stores[asked % stores.len()];
-                asked += 1;
-                if let Err(e) = mb.send(to, Message::FetchManifest(FetchManifest {})).await {
-                    debug!(%to, "cannot ask for the manifest: {e}");
+            _ = crate::sleep_until_opt(p.deadline()) => p.ask_due(Instant::now(), &mut out),
+        }
+        carry_out(&mut p, &mb, &mut out).await;
+    }
+}
+
+/// Carries out the handlers' effects in order, then those that planning
+/// adds.
+async fn carry_out(p: &mut Prefetcher, mb: &Mailbox, out: &mut Vec<Out>) {
+    while !out.is_empty() {
+        for o in std::mem::take(out) {
+            match o {
+                Out::FetchManifest(to) => {
+                    let ask = Message::FetchManifest(FetchManifest {});
+                    if let Err(e) = mb.send(&to, ask).await {
+                        debug!(%to, "cannot ask for the manifest: {e}");
+                    }
                 }
-                ask_at = Some(Instant::now() + MANIFEST_TIMEOUT);
+                Out::Plan(plan) => {
+                    let frame = plan.frame;
+                    // Thousands of rays through the BSP: on the blocking pool, not on
+                    // the scheduler node's only thread, which hands out the tiles.
+                    match tokio::task::spawn_blocking(move || plan.run()).await {
+                        Ok(hints) => p.planned(frame, hints, out),
+                        Err(e) => warn!(frame, "planning the prefetch failed: {e}"),
+                    }
+                }
+                Out::Hint(to, h) => {
+                    let (frame, n) = (h.frame, h.voxels.0.len());
+                    match mb.send(&to, Message::PrefetchHint(h)).await {
+                        Ok(()) => {
+                            p.hint_sent(n);
+                            debug!(frame, %to, voxels = n, "prefetch hint");
+                        }
+                        Err(e) => debug!(frame, %to, "cannot send a prefetch hint: {e}"),
+                    }
+                }
             }
         }
-        p.hint(&mb).await;
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use dray_protocol::{Blob, BoundedVec, PackedF32};
+    use dray_protocol::{Blob, BoundedVec, PackedF32, PackedU32};
     use dray_trace::camera::CameraBasis;
 
     #[test]
