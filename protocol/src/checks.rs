@@ -51,9 +51,9 @@ impl std::error::Error for CameraError {}
 
 /// Checks that a camera makes an image: finite coordinates, a field of view
 /// in (0, 180) degrees, a look point apart from the eye, and an up hint that
-/// is neither zero nor parallel to the view direction. The parallel test is
-/// the kernel's (`dray_trace::camera::Camera::check`), so a camera that
-/// passes here is never refused by a client.
+/// is neither zero nor parallel to the view direction: what the kernel's
+/// camera basis needs. The one camera check: the config, the command line,
+/// received messages and the prefetcher's predicted cameras all call it.
 pub fn check_camera(c: &Camera) -> Result<(), CameraError> {
     let err = |field, message: String| Err(CameraError { field, message });
     for (field, v) in [

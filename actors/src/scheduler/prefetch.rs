@@ -101,7 +101,7 @@ pub fn predict_camera(prev: Option<(u64, &Camera)>, last: (u64, &Camera), next: 
         look: ext(c0.look, c1.look),
         ..*c1
     };
-    if kernel_camera(&p, 1, 1).check().is_ok() {
+    if dray_protocol::check_camera(&p).is_ok() {
         p
     } else {
         *c1

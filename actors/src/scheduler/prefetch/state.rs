@@ -7,10 +7,9 @@
 use super::{plan_hints, plans_frame, predict_camera, PrefetcherOptions, PrefetcherSummary};
 use crate::names::CLIENT;
 use crate::scheduler::policy::TilePolicy;
-use crate::settings::kernel_camera;
 use dray_protocol::{Address, Camera, CameraUpdate, Name, PackedU32, PrefetchHint, TileOwners};
 use dray_scene::db::manifest::Manifest;
-use dray_trace::scene::TopLevel;
+use dray_trace::accel::TopLevel;
 use std::collections::VecDeque;
 use std::sync::Arc;
 use std::time::Duration;
@@ -262,7 +261,7 @@ impl Prefetcher {
         }
         let prev = (self.cams.len() == 2).then(|| (self.cams[0].0, &self.cams[0].1));
         let camera = predict_camera(prev, (seq, &last), next);
-        if kernel_camera(&camera, 1, 1).check().is_err() {
+        if dray_protocol::check_camera(&camera).is_err() {
             debug!(frame = next, "no usable camera to predict from");
             return;
         }
