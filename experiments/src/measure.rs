@@ -190,7 +190,7 @@ pub struct FrameColumn {
 pub const FRAME: &str = "frame";
 
 /// The numeric columns of `frames.csv`: the display's (`metrics.csv`),
-/// then those the runner derives from them ([`DERIVED`]).
+/// then those the runner derives from them (`DERIVED`).
 pub const FRAME_COLUMNS: &[FrameColumn] = &[
     FrameColumn {
         name: "frame_ms",

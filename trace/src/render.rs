@@ -170,7 +170,7 @@ impl PacketChooser {
     /// Whether the next tile's rays are taken to part ways: its shadow
     /// packets hand sparse subtrees over to groups of lanes, and its
     /// surfaces are prefetched. Until a tile says its rays stay together
-    /// (below [`SCATTERED_BELOW`] lanes a child box), and always under a
+    /// (below `SCATTERED_BELOW` lanes a child box), and always under a
     /// fixed choice of packets.
     pub fn scattered(&self) -> bool {
         self.scattered

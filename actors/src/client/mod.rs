@@ -2,14 +2,14 @@
 //!
 //! At start the client asks a store for the manifest (the high-level BSP
 //! and the voxel table), then asks the scheduler for `threads +
-//! tiles_ahead` tiles. Each [`AssignTile`] goes to the least busy render
-//! thread ([`worker`]); finished tiles go to the display ([`TileDone`]),
+//! tiles_ahead` tiles. Each `AssignTile` goes to the least busy render
+//! thread (`worker`); finished tiles go to the display (`TileDone`),
 //! which reports them to the scheduler, and the scheduler is asked for as
 //! many more tiles: one at a time, or in batches when several tiles are
-//! asked for ahead ([`batch`]). Where a render thread runs out of tiles
+//! asked for ahead (`batch`). Where a render thread runs out of tiles
 //! before the next one comes, the client asks for more ahead, up to
-//! `max_tiles_ahead` ([`ahead`]).
-//! Voxels come through the [`loader`] into the [`cache`], shared by every
+//! `max_tiles_ahead` (`ahead`).
+//! Voxels come through the `loader` into the [`cache`], shared by every
 //! render thread.
 //!
 //! The actor task itself only does bookkeeping: messages go out through
@@ -76,7 +76,7 @@ pub struct ClientOptions {
     /// and at least.
     pub tiles_ahead: usize,
     /// Most tiles asked for ahead: the client asks for more than
-    /// `tiles_ahead` while its threads run out of work ([`ahead`]; suspend
+    /// `tiles_ahead` while its threads run out of work (`ahead`; suspend
     /// mode only); equal to `tiles_ahead`, it asks for exactly that many.
     pub max_tiles_ahead: usize,
     /// Fetch every voxel that fits the cache before asking for tiles.

@@ -28,7 +28,7 @@ use tracing::{debug, info, warn};
 pub struct SchedulerOptions {
     /// Tile side, pixels.
     pub tile_size: u32,
-    /// Which policy hands out the tiles (see [`super::policy`]).
+    /// Which policy hands out the tiles (see `scheduler::policy`).
     pub policy: TilePolicy,
     /// A knob of the affinity policy: a client's tiles (and tiles taken
     /// from others) go out costliest first, by the last frame's measured
