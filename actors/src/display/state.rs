@@ -480,6 +480,18 @@ mod tests {
         sent
     }
 
+    /// The image of the first frame shown, taken out of `out`.
+    fn take_shown_image(out: &mut Vec<Out>) -> FrameImage {
+        match out
+            .iter()
+            .position(|o| matches!(o, Out::Show { .. }))
+            .map(|i| out.remove(i))
+        {
+            Some(Out::Show { image, .. }) => image,
+            _ => panic!("no frame shown: {out:?}"),
+        }
+    }
+
     fn shown(out: &mut Vec<Out>) -> Vec<u64> {
         let mut frames = Vec::new();
         out.retain(|o| match o {
@@ -708,13 +720,7 @@ mod tests {
         d.advance(&mut out);
         send_all(&mut d, &mut out);
         complete(&mut d, 0, &mut out);
-        let Some(Out::Show { image, .. }) = out
-            .iter()
-            .position(|o| matches!(o, Out::Show { .. }))
-            .map(|i| out.remove(i))
-        else {
-            panic!("frame 0 not shown: {out:?}");
-        };
+        let image = take_shown_image(&mut out);
         let pixels = image.rgba.as_ptr();
         d.shown(image);
         assert_eq!(d.summary.images.len(), 1);
@@ -729,13 +735,7 @@ mod tests {
         out.clear();
         d.camera_sent(Instant::now(), &mut out);
         complete(&mut d, 0, &mut out);
-        let Some(Out::Show { image, .. }) = out
-            .iter()
-            .position(|o| matches!(o, Out::Show { .. }))
-            .map(|i| out.remove(i))
-        else {
-            panic!("frame 0 not shown: {out:?}");
-        };
+        let image = take_shown_image(&mut out);
         let pixels = image.rgba.as_ptr();
         d.shown(image);
         assert!(d.summary.images.is_empty());
