@@ -261,6 +261,14 @@ pub(crate) struct RenderArgs {
     /// Timed passes (after one untimed warm-up); best and median are reported.
     #[arg(long, default_value_t = 1)]
     pub(crate) repeat: usize,
+    /// Samples per pixel, 1-1024: samples 0 to N-1 of the view, averaged
+    /// into the image (anti-aliasing). Sample 0's rays pass through the
+    /// pixel centres, each other sample's through every pixel at the same
+    /// sub-pixel offset; the depth and ids are sample 0's, and the rays
+    /// and rates count every sample. With --path, each camera is rendered
+    /// N times, as the cluster does with render.samples.
+    #[arg(long, default_value_t = 1)]
+    pub(crate) spp: u32,
     /// Print one JSON object as the last line.
     #[arg(long)]
     pub(crate) json: bool,

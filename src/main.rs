@@ -451,6 +451,7 @@ fn render(a: &RenderArgs) -> Result<()> {
     dray_protocol::check_reflectance(a.reflectance).map_err(flag("--reflectance"))?;
     dray_protocol::check_reflection_depth(a.reflections).map_err(flag("--reflections"))?;
     dray_protocol::check_light_dir(a.light.to_array()).map_err(flag("--light"))?;
+    dray_protocol::check_samples(a.spp).map_err(flag("--spp"))?;
     let db = Database::open(&a.db)?;
     let load = std::time::Instant::now();
     let source = ResidentSource::load(&db)?;
@@ -499,7 +500,8 @@ fn render(a: &RenderArgs) -> Result<()> {
             .collect();
         let report = PathReport {
             load_seconds,
-            ..render_path(&top, &source, &cameras, &settings, a.working_set).map_err(not_loaded)?
+            ..render_path(&top, &source, &cameras, a.spp, &settings, a.working_set)
+                .map_err(not_loaded)?
         };
         print!("{}", report.text());
         if a.json {
@@ -508,7 +510,7 @@ fn render(a: &RenderArgs) -> Result<()> {
         return Ok(());
     }
     let passes =
-        render_repeated(&top, &source, &camera, &settings, a.repeat).map_err(not_loaded)?;
+        render_repeated(&top, &source, &camera, &settings, a.repeat, a.spp).map_err(not_loaded)?;
     let frame = &passes.frame;
     if let Some(p) = &a.out {
         dray_trace::image::write_png(p, frame.width, frame.height, &frame.rgba)?;

@@ -119,6 +119,46 @@ fn generate_preprocess_verify_info() {
         "Pf\n64 48\n-1.0\n".len() as u64 + 64 * 48 * 4
     );
 
+    // One sample per pixel is the default's image; more are averaged, and
+    // the figures count them all; the depth and ids stay sample 0's.
+    let view = |spp: &str, png: &Path, pfm: &Path| {
+        let out = dray(&[
+            "render",
+            s(&db),
+            "--eye",
+            "-20,15,-25",
+            "--look",
+            "40,2,30",
+            "--width",
+            "64",
+            "--height",
+            "48",
+            "--shadows",
+            "--reflections",
+            "1",
+            "--out",
+            s(png),
+            "--depth-out",
+            s(pfm),
+            "--spp",
+            spp,
+            "--json",
+        ]);
+        assert!(out.status.success(), "{}", text(&out));
+        let stdout = String::from_utf8(out.stdout).unwrap();
+        serde_json::from_str::<serde_json::Value>(stdout.lines().last().unwrap()).unwrap()
+    };
+    let (png1, pfm1) = (dir.path().join("spp1.png"), dir.path().join("spp1.pfm"));
+    let one = view("1", &png1, &pfm1);
+    assert_eq!(one["samples"], 1);
+    assert_eq!(std::fs::read(&png1).unwrap(), std::fs::read(&png).unwrap());
+    let (png3, pfm3) = (dir.path().join("spp3.png"), dir.path().join("spp3.pfm"));
+    let three = view("3", &png3, &pfm3);
+    assert_eq!(three["samples"], 3);
+    assert_eq!(three["primary_rays"], 3 * 64 * 48);
+    assert_ne!(std::fs::read(&png3).unwrap(), std::fs::read(&png).unwrap());
+    assert_eq!(std::fs::read(&pfm3).unwrap(), std::fs::read(&pfm).unwrap());
+
     // A camera the cluster would refuse is refused here in the same words,
     // naming the flag.
     let out = dray(&[
@@ -463,6 +503,12 @@ fn shading_flags_out_of_range_are_refused_with_the_shared_words() {
             "--light",
             "0,0,0",
             dray_protocol::check_light_dir([0.0; 3]).unwrap_err(),
+        ),
+        ("--spp", "0", dray_protocol::check_samples(0).unwrap_err()),
+        (
+            "--spp",
+            "1025",
+            dray_protocol::check_samples(1025).unwrap_err(),
         ),
     ] {
         let out = dray(&["render", s(&db), flag, value]);

@@ -3,7 +3,7 @@
 //! here, and every place calls it and puts its own key or flag before the
 //! message.
 
-use crate::{Camera, MAX_IMAGE_SIDE, MAX_REFLECTION_DEPTH};
+use crate::{Camera, MAX_IMAGE_SIDE, MAX_REFLECTION_DEPTH, MAX_SAMPLES};
 use std::fmt;
 
 /// The value of a [`Camera`] that a check refused.
@@ -102,6 +102,14 @@ pub fn check_image_side(side: u32) -> Result<(), String> {
     Ok(())
 }
 
+/// Checks a number of samples per pixel: 1 to [`MAX_SAMPLES`].
+pub fn check_samples(samples: u32) -> Result<(), String> {
+    if samples == 0 || samples > MAX_SAMPLES {
+        return Err(format!("{samples} is not in 1..={MAX_SAMPLES}"));
+    }
+    Ok(())
+}
+
 /// Checks the share of the light a mirror reflects: within [0, 1].
 pub fn check_reflectance(reflectance: f32) -> Result<(), String> {
     if !(0.0..=1.0).contains(&reflectance) {
@@ -190,5 +198,8 @@ mod tests {
         assert!(check_light_dir([0.0, 1.0, 0.0]).is_ok());
         assert!(check_light_dir([0.0; 3]).is_err());
         assert!(check_light_dir([f32::INFINITY, 0.0, 0.0]).is_err());
+        assert!(check_samples(1).is_ok() && check_samples(MAX_SAMPLES).is_ok());
+        assert_eq!(check_samples(0).unwrap_err(), "0 is not in 1..=1024");
+        assert!(check_samples(MAX_SAMPLES + 1).is_err());
     }
 }

@@ -29,7 +29,7 @@ mod pixels;
 pub use bounded::{Blob, BoundedVec, PackedF32, PackedU32};
 pub use checks::{
     check_camera, check_image_side, check_light_dir, check_reflectance, check_reflection_depth,
-    CameraError, CameraField,
+    check_samples, CameraError, CameraField,
 };
 pub use messages::*;
 pub use name::{Name, NameError, MAX_NAME_LEN};
@@ -76,6 +76,9 @@ pub const MAX_STATS_CLIENTS: usize = 1024;
 pub const MAX_TEXT_LEN: usize = 1024;
 /// Deepest reflection recursion a tile may ask for.
 pub const MAX_REFLECTION_DEPTH: u8 = 16;
+/// Most samples per pixel a camera of a walkthrough (`render.samples`) or
+/// `dray render --spp` asks for.
+pub const MAX_SAMPLES: u32 = 1024;
 
 /// Room for an envelope's addresses and a message's fixed fields.
 const ENVELOPE_OVERHEAD: usize = 4 * (MAX_NAME_LEN + 2) + 256;

@@ -32,8 +32,17 @@ impl Camera {
         }
     }
 
-    /// The per-image constants of the ray generation.
+    /// The per-image constants of the ray generation: sample 0, every
+    /// ray through its pixel's centre.
     pub fn basis(&self) -> CameraBasis {
+        self.sample_basis(0)
+    }
+
+    /// The per-image constants of sample `sample`'s rays: every ray of the
+    /// image moved by the same [`sample_offset`], so packets stay as
+    /// coherent as at the centres.
+    pub fn sample_basis(&self, sample: u32) -> CameraBasis {
+        let (jx, jy) = sample_offset(sample);
         let w = normalize(self.look - self.eye);
         let u = normalize(w.cross(self.up));
         let v = u.cross(w);
@@ -46,8 +55,31 @@ impl Camera {
             up: v * th,
             width: self.width as f32,
             height: self.height as f32,
+            centre_x: 0.5 + jx,
+            centre_y: 0.5 + jy,
         }
     }
+}
+
+/// The sub-pixel offset of sample `sample`'s rays from the pixel centres,
+/// (x right, y down), each in (-0.5, 0.5): (0, 0) for sample 0, then the
+/// R2 sequence (Roberts' additive recurrence on the plastic number, a
+/// low-discrepancy sequence in two dimensions), so that the first few
+/// samples already spread over the pixel and every further one fills its
+/// largest gaps. Computed in 32-bit fixed point and converted exactly, so
+/// every machine and every path of the kernel gets the same floats.
+pub fn sample_offset(sample: u32) -> (f32, f32) {
+    // 2^32 / φ₂ and 2^32 / φ₂², φ₂ the plastic number (x³ = x + 1).
+    const A1: u32 = 0xC13F_A9A9;
+    const A2: u32 = 0x91E1_0DA5;
+    // The fraction of sample × a, read as signed, is its offset from the
+    // centre; 24 bits of it convert to f32 exactly, and the one value
+    // that would be -0.5 is moved inside.
+    let axis = |a: u32| {
+        let q = (sample.wrapping_mul(a) as i32 >> 8).max(-(1 << 23) + 1);
+        q as f32 * (1.0 / (1u32 << 24) as f32)
+    };
+    (axis(A1), axis(A2))
 }
 
 /// `a / |a|` with a division (not a reciprocal multiply), so rays are
@@ -67,14 +99,20 @@ pub struct CameraBasis {
     pub up: Vec3,
     pub width: f32,
     pub height: f32,
+    /// Where within its pixel each ray passes, from the pixel's left and
+    /// top edges: 0.5 at the centre (sample 0), else 0.5 plus the sample's
+    /// [`sample_offset`].
+    pub centre_x: f32,
+    pub centre_y: f32,
 }
 
 impl CameraBasis {
-    /// The unit direction through the centre of pixel (x, y), y down.
+    /// The unit direction of pixel (x, y)'s ray, y down: through its
+    /// centre at sample 0, else moved by the sample's offset.
     #[inline(always)]
     pub fn direction(&self, x: u32, y: u32) -> Vec3 {
-        let sx = 2.0 * (x as f32 + 0.5) / self.width - 1.0;
-        let sy = 1.0 - 2.0 * (y as f32 + 0.5) / self.height;
+        let sx = 2.0 * (x as f32 + self.centre_x) / self.width - 1.0;
+        let sy = 1.0 - 2.0 * (y as f32 + self.centre_y) / self.height;
         normalize(self.forward + self.right * sx + self.up * sy)
     }
 
@@ -131,6 +169,52 @@ mod tests {
         }
         assert_eq!(b.project(b.eye - b.forward), None, "behind the eye");
         assert_eq!(b.project(b.eye), None);
+    }
+
+    #[test]
+    fn sample_zero_is_the_centre_and_the_others_spread_over_the_pixel() {
+        assert_eq!(sample_offset(0), (0.0, 0.0));
+        let cam = Camera {
+            eye: Vec3::new(1.0, 2.0, 3.0),
+            look: Vec3::new(-4.0, 0.5, -7.0),
+            up: Vec3::Y,
+            fov_degrees: 50.0,
+            width: 64,
+            height: 48,
+        };
+        let (b, b0) = (cam.basis(), cam.sample_basis(0));
+        for (x, y) in [(0, 0), (63, 47), (17, 30)] {
+            assert_eq!(b.direction(x, y), b0.direction(x, y));
+        }
+        let offsets: Vec<(f32, f32)> = (0..1024).map(sample_offset).collect();
+        for (k, &(x, y)) in offsets.iter().enumerate() {
+            assert!(x > -0.5 && x < 0.5 && y > -0.5 && y < 0.5, "sample {k}");
+        }
+        // The fraction that is exactly -0.5 is moved inside.
+        assert_eq!(sample_offset(1 << 31).0, -0.5 + 1.0 / (1u32 << 24) as f32);
+        // Samples 0..4 fall one in each quadrant of the pixel.
+        let quadrant = |(x, y): (f32, f32)| (x >= 0.0, y >= 0.0);
+        let mut q: Vec<_> = offsets[..4].iter().map(|&o| quadrant(o)).collect();
+        q.sort();
+        q.dedup();
+        assert_eq!(q.len(), 4);
+        // Evenly spread: the mean offset of 1024 samples is near the centre.
+        let n = offsets.len() as f32;
+        let mean = offsets
+            .iter()
+            .fold((0.0, 0.0), |m, o| (m.0 + o.0, m.1 + o.1));
+        assert!(
+            (mean.0 / n).abs() < 0.01 && (mean.1 / n).abs() < 0.01,
+            "{mean:?}"
+        );
+        // A sample's rays pass through their own pixels, moved by its offset.
+        for k in [1, 2, 3, 1023] {
+            let (jx, jy) = sample_offset(k);
+            let s = cam.sample_basis(k);
+            let (px, py) = s.project(s.eye + s.direction(17, 30) * 10.0).unwrap();
+            assert_eq!((px.floor(), py.floor()), (17.0, 30.0), "sample {k}");
+            assert!((px - 17.5 - jx).abs() < 1e-3 && (py - 30.5 - jy).abs() < 1e-3);
+        }
     }
 
     #[test]

@@ -2,6 +2,7 @@
 //! depth as a grey PFM (rows bottom to top, +inf on a miss) and primitive
 //! ids as raw little-endian u32 (rows top to bottom, 0xFFFFFFFF on a miss).
 //! Every file is written to a temporary name and renamed into place.
+//! [`Accumulator`] averages samples of one view into one image.
 
 use std::io::{self, Write};
 use std::path::{Path, PathBuf};
@@ -194,9 +195,183 @@ pub fn depth_to_rgba(depth: &[f32]) -> Vec<[u8; 4]> {
         .collect()
 }
 
+/// Why [`Accumulator::add`] refused an image.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum AccumulateError {
+    #[error("{got} pixels for a {width}x{height} image")]
+    Size { width: u32, height: u32, got: usize },
+    #[error(
+        "the image already holds {} samples, the most its sums take",
+        Accumulator::MAX_SAMPLES
+    )]
+    Full,
+}
+
+/// Samples of one view (the same camera, size and settings; sample k's rays
+/// moved by [`crate::camera::sample_offset`]) added into one image: per
+/// pixel and channel the sum of the samples' values, in integers, so the
+/// result is exact and the same whatever order the samples come in. That
+/// is what makes a cluster's accumulated frames equal `dray render
+/// --spp`'s.
+#[derive(Clone, Debug)]
+pub struct Accumulator {
+    width: u32,
+    height: u32,
+    /// Per pixel, the sums of red, green and blue.
+    sums: Vec<[u32; 3]>,
+    samples: u32,
+}
+
+impl Accumulator {
+    /// The most samples the u32 sums take (each adds at most 255).
+    pub const MAX_SAMPLES: u32 = u32::MAX / 255;
+
+    /// An empty `width` × `height` image (no sample yet).
+    pub fn new(width: u32, height: u32) -> Accumulator {
+        Accumulator {
+            width,
+            height,
+            sums: vec![[0; 3]; width as usize * height as usize],
+            samples: 0,
+        }
+    }
+
+    /// Adds one sample: `rgba` holds `width × height` pixels, rows top to
+    /// bottom; its alpha is ignored.
+    pub fn add(&mut self, rgba: &[[u8; 4]]) -> Result<(), AccumulateError> {
+        if rgba.len() != self.sums.len() {
+            return Err(AccumulateError::Size {
+                width: self.width,
+                height: self.height,
+                got: rgba.len(),
+            });
+        }
+        if self.samples >= Self::MAX_SAMPLES {
+            return Err(AccumulateError::Full);
+        }
+        for (s, p) in self.sums.iter_mut().zip(rgba) {
+            for c in 0..3 {
+                s[c] += u32::from(p[c]);
+            }
+        }
+        self.samples += 1;
+        Ok(())
+    }
+
+    /// Samples added so far.
+    pub fn samples(&self) -> u32 {
+        self.samples
+    }
+
+    /// Forgets every sample (the camera moved).
+    pub fn clear(&mut self) {
+        self.sums.fill([0; 3]);
+        self.samples = 0;
+    }
+
+    /// The mean of the samples: per channel `(sum + n/2) / n` in integers
+    /// (rounded half up), alpha 255; black before the first sample.
+    pub fn image(&self) -> Vec<[u8; 4]> {
+        let n = self.samples;
+        if n == 0 {
+            return vec![[0, 0, 0, 255]; self.sums.len()];
+        }
+        // At most 255: the sums are of n values up to 255 each.
+        let mean = |sum: u32| ((u64::from(sum) + u64::from(n / 2)) / u64::from(n)) as u8;
+        self.sums
+            .iter()
+            .map(|s| [mean(s[0]), mean(s[1]), mean(s[2]), 255])
+            .collect()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+    use proptest::prelude::*;
+
+    fn pixels(n: usize) -> impl Strategy<Value = Vec<[u8; 4]>> {
+        proptest::collection::vec(any::<[u8; 4]>(), n)
+    }
+
+    proptest! {
+        #[test]
+        fn one_sample_is_the_image_itself(img in pixels(12)) {
+            let mut a = Accumulator::new(4, 3);
+            a.add(&img).unwrap();
+            prop_assert_eq!(a.samples(), 1);
+            let opaque: Vec<[u8; 4]> = img.iter().map(|p| [p[0], p[1], p[2], 255]).collect();
+            prop_assert_eq!(a.image(), opaque);
+        }
+
+        #[test]
+        fn the_order_of_the_samples_does_not_matter(
+            imgs in proptest::collection::vec(pixels(6), 1..9),
+            seed in any::<u64>(),
+        ) {
+            let mut forward = Accumulator::new(3, 2);
+            for img in &imgs {
+                forward.add(img).unwrap();
+            }
+            let mut order: Vec<usize> = (0..imgs.len()).collect();
+            // A permutation from the seed: Fisher-Yates on an LCG.
+            let mut x = seed;
+            for i in (1..order.len()).rev() {
+                x = x.wrapping_mul(0x9E37_79B9_7F4A_7C15).wrapping_add(1);
+                order.swap(i, (x >> 33) as usize % (i + 1));
+            }
+            let mut shuffled = Accumulator::new(3, 2);
+            for &i in &order {
+                shuffled.add(&imgs[i]).unwrap();
+            }
+            prop_assert_eq!(forward.image(), shuffled.image());
+            // And it is the rounded mean, channel by channel.
+            let n = imgs.len() as u32;
+            for (k, p) in forward.image().iter().enumerate() {
+                for c in 0..3 {
+                    let sum: u32 = imgs.iter().map(|img| u32::from(img[k][c])).sum();
+                    prop_assert_eq!(u32::from(p[c]), (sum + n / 2) / n);
+                }
+                prop_assert_eq!(p[3], 255);
+            }
+        }
+
+        #[test]
+        fn a_constant_image_stays_constant(c in any::<[u8; 3]>(), n in 1u32..300) {
+            let img = vec![[c[0], c[1], c[2], 255]; 6];
+            let mut a = Accumulator::new(2, 3);
+            for _ in 0..n {
+                a.add(&img).unwrap();
+            }
+            prop_assert_eq!(a.samples(), n);
+            prop_assert_eq!(a.image(), img);
+        }
+    }
+
+    #[test]
+    fn a_wrong_size_or_a_full_image_is_refused() {
+        let mut a = Accumulator::new(2, 2);
+        assert_eq!(a.image(), vec![[0, 0, 0, 255]; 4], "no sample yet");
+        assert_eq!(
+            a.add(&[[1, 2, 3, 4]; 3]),
+            Err(AccumulateError::Size {
+                width: 2,
+                height: 2,
+                got: 3
+            })
+        );
+        assert_eq!(a.samples(), 0);
+        a.add(&[[255; 4]; 4]).unwrap();
+        a.add(&[[0; 4]; 4]).unwrap();
+        assert_eq!(a.image(), vec![[128, 128, 128, 255]; 4], "half rounds up");
+        a.clear();
+        assert_eq!(a.samples(), 0);
+        a.samples = Accumulator::MAX_SAMPLES - 1;
+        a.sums.fill([u32::MAX - 255 - 254; 3]);
+        a.add(&[[255; 4]; 4]).unwrap();
+        assert_eq!(a.add(&[[255; 4]; 4]), Err(AccumulateError::Full));
+        assert_eq!(a.image(), vec![[255, 255, 255, 255]; 4]);
+    }
 
     #[test]
     fn pfm_and_u32_round_trip_in_the_shared_layouts() {

@@ -10,6 +10,7 @@
 use crate::accel::{TopLevel, VoxelSource};
 use crate::camera::{Camera, CameraBasis};
 use crate::clock::Calibration;
+use crate::image::Accumulator;
 pub use crate::job::depth_grey;
 use crate::job::{Ctx, PacketJob, Region};
 use crate::packet::Step;
@@ -300,6 +301,27 @@ pub struct FrameStats {
     pub sparse_tiles: u64,
 }
 
+impl FrameStats {
+    /// Adds another frame's counts and times to these.
+    pub fn add(&mut self, o: &FrameStats) {
+        self.primary_rays += o.primary_rays;
+        self.shadow_rays += o.shadow_rays;
+        self.occluded += o.occluded;
+        self.shadow_packets += o.shadow_packets;
+        self.occluder_skips += o.occluder_skips;
+        self.reflection_rays += o.reflection_rays;
+        self.hits += o.hits;
+        self.seconds += o.seconds;
+        self.shadow_seconds += o.shadow_seconds;
+        self.shadow_ticks += o.shadow_ticks;
+        self.voxels_visited += o.voxels_visited;
+        self.child_hits += o.child_hits;
+        self.child_lanes += o.child_lanes;
+        self.wide_tiles += o.wide_tiles;
+        self.sparse_tiles += o.sparse_tiles;
+    }
+}
+
 struct Shared<'a> {
     top: &'a TopLevel,
     source: &'a dyn VoxelSource,
@@ -323,11 +345,23 @@ struct TileOut {
 
 /// Renders `camera`'s view with every voxel from `source` (which must hold
 /// them all: a missing voxel here is a bug of the caller, reported by
-/// `Err`).
+/// `Err`): sample 0, every ray through its pixel's centre.
 pub fn render(
     top: &TopLevel,
     source: &dyn VoxelSource,
     camera: &Camera,
+    settings: &RenderSettings,
+) -> Result<Frame, u32> {
+    render_sample(top, source, camera, 0, settings)
+}
+
+/// [`render`] of sample `sample`: every ray moved by
+/// [`crate::camera::sample_offset`]`(sample)` within its pixel.
+pub fn render_sample(
+    top: &TopLevel,
+    source: &dyn VoxelSource,
+    camera: &Camera,
+    sample: u32,
     settings: &RenderSettings,
 ) -> Result<Frame, u32> {
     let (w, h) = (camera.width, camera.height);
@@ -340,7 +374,7 @@ pub fn render(
     let shared = Shared {
         top,
         source,
-        basis: camera.basis(),
+        basis: camera.sample_basis(sample),
         settings: settings.clone(),
         width: w,
         height: h,
@@ -416,20 +450,7 @@ fn merge(frame: &Mutex<Frame>, out: TileOut) {
             f.rgba[dst..dst + n].copy_from_slice(&out.rgba[src]);
         }
     }
-    let s = &mut f.stats;
-    s.primary_rays += out.stats.primary_rays;
-    s.shadow_rays += out.stats.shadow_rays;
-    s.reflection_rays += out.stats.reflection_rays;
-    s.occluded += out.stats.occluded;
-    s.shadow_packets += out.stats.shadow_packets;
-    s.occluder_skips += out.stats.occluder_skips;
-    s.hits += out.stats.hits;
-    s.shadow_ticks += out.stats.shadow_ticks;
-    s.voxels_visited += out.stats.voxels_visited;
-    s.child_hits += out.stats.child_hits;
-    s.child_lanes += out.stats.child_lanes;
-    s.wide_tiles += out.stats.wide_tiles;
-    s.sparse_tiles += out.stats.sparse_tiles;
+    f.stats.add(&out.stats);
 }
 
 fn render_tile(
@@ -589,11 +610,52 @@ pub(crate) fn voxel_color(id: u32) -> Vec3 {
 
 pub(crate) const BACKGROUND: Vec3 = Vec3::new(0.094, 0.11, 0.14);
 
+/// Renders samples `0..samples` of `camera`'s view ([`render_sample`])
+/// and returns sample 0's frame (its depth and ids) with the samples'
+/// colours averaged by an [`Accumulator`] and their statistics summed
+/// (seconds too): what `dray render --spp` writes and reports. One sample
+/// (or 0) is [`render`]'s frame; more than [`Accumulator::MAX_SAMPLES`]
+/// count as that many.
+pub fn render_samples(
+    top: &TopLevel,
+    source: &dyn VoxelSource,
+    camera: &Camera,
+    samples: u32,
+    settings: &RenderSettings,
+) -> Result<Frame, u32> {
+    let mut frame = render_sample(top, source, camera, 0, settings)?;
+    let samples = samples.min(Accumulator::MAX_SAMPLES);
+    if samples <= 1 {
+        return Ok(frame);
+    }
+    // Unshaded frames have no colours to average.
+    let mut acc = (!frame.rgba.is_empty()).then(|| Accumulator::new(frame.width, frame.height));
+    let add = |acc: &mut Option<Accumulator>, rgba: &[[u8; 4]]| {
+        if let Some(a) = acc {
+            a.add(rgba)
+                .expect("every sample has the camera's size, and there are at most MAX_SAMPLES");
+        }
+    };
+    add(&mut acc, &frame.rgba);
+    for k in 1..samples {
+        let f = render_sample(top, source, camera, k, settings)?;
+        add(&mut acc, &f.rgba);
+        frame.stats.add(&f.stats);
+    }
+    if let Some(a) = acc {
+        frame.rgba = a.image();
+    }
+    Ok(frame)
+}
+
 /// The timed passes of [`render_repeated`].
 #[derive(Clone, Debug)]
 pub struct Passes {
-    /// The last pass's frame.
+    /// The last pass's frame ([`render_samples`]: sample 0's depth and ids,
+    /// the samples' mean colours, their summed statistics).
     pub frame: Frame,
+    /// Samples per pass.
+    pub samples: u32,
     /// Each pass's wall-clock seconds.
     pub seconds: Vec<f64>,
     /// Each pass's seconds in shadow packets, summed over the threads
@@ -601,26 +663,29 @@ pub struct Passes {
     pub shadow_seconds: Vec<f64>,
 }
 
-/// Renders once untimed (warm-up), then `repeat` timed passes. Every pass
-/// traces the same rays, so the best pass of each figure is as fair a
-/// measure as the yardstick's best of its passes.
+/// Renders once untimed (warm-up), then `repeat` timed passes, each of
+/// samples `0..samples` ([`render_samples`]). Every pass traces the same
+/// rays, so the best pass of each figure is as fair a measure as the
+/// yardstick's best of its passes.
 pub fn render_repeated(
     top: &TopLevel,
     source: &dyn VoxelSource,
     camera: &Camera,
     settings: &RenderSettings,
     repeat: usize,
+    samples: u32,
 ) -> Result<Passes, u32> {
-    let mut frame = render(top, source, camera, settings)?;
+    let mut frame = render_samples(top, source, camera, samples, settings)?;
     let mut seconds = Vec::with_capacity(repeat);
     let mut shadow_seconds = Vec::with_capacity(repeat);
     for _ in 0..repeat.max(1) {
-        frame = render(top, source, camera, settings)?;
+        frame = render_samples(top, source, camera, samples, settings)?;
         seconds.push(frame.stats.seconds);
         shadow_seconds.push(frame.stats.shadow_seconds);
     }
     Ok(Passes {
         frame,
+        samples: samples.clamp(1, Accumulator::MAX_SAMPLES),
         seconds,
         shadow_seconds,
     })

@@ -4,7 +4,7 @@
 
 use crate::accel::{RecordingSource, ResidentSource, TopLevel, VoxelSource};
 use crate::camera::Camera;
-use crate::render::{render, FrameStats, Isa, Passes, RenderSettings};
+use crate::render::{render_sample, FrameStats, Isa, Passes, RenderSettings};
 use serde_json::{json, Value};
 
 /// One view rendered in timed passes ([`crate::render::render_repeated`]).
@@ -12,6 +12,9 @@ use serde_json::{json, Value};
 pub struct ViewReport {
     pub width: u32,
     pub height: u32,
+    /// Samples per pixel of each pass ([`crate::render::render_samples`]):
+    /// the counts and times are of all of them.
+    pub samples: u32,
     pub threads: usize,
     pub isa: Isa,
     /// Whether shadow or reflection rays were traced (the text names them).
@@ -41,6 +44,7 @@ impl ViewReport {
         ViewReport {
             width: passes.frame.width,
             height: passes.frame.height,
+            samples: passes.samples,
             threads: settings.threads,
             isa: settings.isa,
             secondary: settings.shadows || settings.reflections > 0,
@@ -54,7 +58,7 @@ impl ViewReport {
         }
     }
 
-    /// Rays of one pass: primary, shadow and reflection.
+    /// Rays of one pass (all its samples): primary, shadow and reflection.
     pub fn rays(&self) -> u64 {
         let s = &self.stats;
         s.primary_rays + s.shadow_rays + s.reflection_rays
@@ -91,9 +95,14 @@ impl ViewReport {
     pub fn text(&self) -> String {
         let s = &self.stats;
         format!(
-            "{}x{} on {} thread(s), {} packets of {} rays{}: {:.2} Mrays/s best, {:.2} median ({} rays{}), {:.1} % hit, {:.2} voxels entered per {} primary rays; loaded {} voxels ({} MiB) in {:.2} s",
+            "{}x{}{} on {} thread(s), {} packets of {} rays{}: {:.2} Mrays/s best, {:.2} median ({} rays{}), {:.1} % hit, {:.2} voxels entered per {} primary rays; loaded {} voxels ({} MiB) in {:.2} s",
             self.width,
             self.height,
+            if self.samples > 1 {
+                format!(" x {} samples", self.samples)
+            } else {
+                String::new()
+            },
             self.threads,
             self.isa.name(),
             self.isa.lanes(),
@@ -139,6 +148,7 @@ impl ViewReport {
             "threads": self.threads,
             "width": self.width,
             "height": self.height,
+            "samples": self.samples,
             "hit_fraction": self.hit_fraction(),
             "isa": self.isa.name(),
             "lanes": self.isa.lanes(),
@@ -153,11 +163,16 @@ impl ViewReport {
     }
 }
 
-/// A camera path rendered once per camera with every voxel resident: the
-/// one-process figure the cluster's frame rate is compared with.
+/// A camera path rendered with every voxel resident, each camera
+/// `samples` times (samples 0..samples, as a cluster with `render.samples`
+/// renders them as frames of their own): the one-process figure the
+/// cluster's frame rate is compared with.
 #[derive(Clone, Debug, Default)]
 pub struct PathReport {
+    /// Frames rendered: cameras × samples.
     pub frames: usize,
+    /// Samples per camera.
+    pub samples: u32,
     pub width: u32,
     pub height: u32,
     pub threads: usize,
@@ -175,20 +190,23 @@ pub struct PathReport {
     pub load_seconds: f64,
 }
 
-/// Renders every camera of a path once, everything resident; with
-/// `working_set`, records which voxels each frame enters. `Err` is a voxel
-/// `source` lacks.
+/// Renders samples `0..samples` of every camera of a path, everything
+/// resident; with `working_set`, records which voxels each frame enters.
+/// `Err` is a voxel `source` lacks.
 pub fn render_path(
     top: &TopLevel,
     source: &ResidentSource,
     cameras: &[Camera],
+    samples: u32,
     settings: &RenderSettings,
     working_set: bool,
 ) -> Result<PathReport, u32> {
+    let samples = samples.max(1);
     // Recording costs a flag test per voxel entered: only when asked.
     let mut recorder = working_set.then(|| RecordingSource::new(source, source.voxel_count()));
     let mut report = PathReport {
-        frames: cameras.len(),
+        frames: cameras.len() * samples as usize,
+        samples,
         width: cameras.first().map_or(0, |c| c.width),
         height: cameras.first().map_or(0, |c| c.height),
         threads: settings.threads,
@@ -196,10 +214,13 @@ pub fn render_path(
         ..PathReport::default()
     };
     let start = std::time::Instant::now();
-    for camera in cameras {
+    for (camera, sample) in cameras
+        .iter()
+        .flat_map(|c| (0..samples).map(move |k| (c, k)))
+    {
         let frame = match &mut recorder {
             Some(r) => {
-                let f = render(top, r, camera, settings)?;
+                let f = render_sample(top, r, camera, sample, settings)?;
                 let bytes: usize = r
                     .take()
                     .iter()
@@ -209,7 +230,7 @@ pub fn render_path(
                 report.working_set_bytes.push(bytes);
                 f
             }
-            None => render(top, source, camera, settings)?,
+            None => render_sample(top, source, camera, sample, settings)?,
         };
         let s = &frame.stats;
         report.rays += s.primary_rays + s.shadow_rays + s.reflection_rays;
@@ -241,8 +262,13 @@ impl PathReport {
     /// The lines `dray render --path` prints.
     pub fn text(&self) -> String {
         let mut out = format!(
-            "{} frames of {}x{} on {} thread(s) in {:.2} s: {:.2} frames/s, {:.2} Mrays/s (loaded in {:.2} s)\n",
+            "{} frames{} of {}x{} on {} thread(s) in {:.2} s: {:.2} frames/s, {:.2} Mrays/s (loaded in {:.2} s)\n",
             self.frames,
+            if self.samples > 1 {
+                format!(" ({} cameras x {} samples)", self.frames / self.samples as usize, self.samples)
+            } else {
+                String::new()
+            },
             self.width,
             self.height,
             self.threads,
@@ -266,6 +292,7 @@ impl PathReport {
     pub fn to_json(&self) -> Value {
         json!({
             "frames": self.frames,
+            "samples": self.samples,
             "seconds": self.seconds,
             "fps": self.fps(),
             "rays": self.rays,
@@ -305,6 +332,7 @@ mod tests {
                 rgba: Vec::new(),
                 stats,
             },
+            samples: 1,
             seconds: vec![0.004, 0.001, 0.002],
             shadow_seconds: vec![0.0, 0.002, 0.001],
         }
@@ -349,12 +377,25 @@ mod tests {
         assert!(text.starts_with("40x25 on 2 thread(s), portable packets of "));
         assert!(text.contains(", 500 shadow and 500 reflection rays"));
         assert!(text.contains("25.0 % hit"));
+        let four = ViewReport::new(
+            &Passes {
+                samples: 4,
+                ..passes()
+            },
+            &settings(),
+            &camera(),
+        );
+        assert!(four
+            .text()
+            .starts_with("40x25 x 4 samples on 2 thread(s), "));
+        assert_eq!(four.to_json()["samples"], 4);
     }
 
     #[test]
     fn a_path_reports_its_frame_rate_and_working_sets() {
         let mut r = PathReport {
             frames: 4,
+            samples: 1,
             width: 640,
             height: 480,
             threads: 2,
@@ -380,5 +421,9 @@ mod tests {
             j["working_set_bytes"],
             json!([1_000_000, 3_000_000, 2_000_000, 2_000_000])
         );
+        r.samples = 2;
+        assert!(r
+            .text()
+            .starts_with("4 frames (2 cameras x 2 samples) of 640x480 "));
     }
 }

@@ -6,7 +6,7 @@
 //! [`crate::render::render`], so the pixels are the frame's, bit for bit.
 
 use crate::accel::{PreparedVoxel, TopLevel, VoxelRef, VoxelSource};
-use crate::camera::Camera;
+use crate::camera::{Camera, CameraBasis};
 use crate::job::{Ctx, PacketJob, Region};
 use crate::packet::Step;
 use crate::render::{FrameStats, Isa, Packets, RenderSettings};
@@ -93,9 +93,10 @@ pub struct TileImage {
 impl TileImage {
     /// World positions of the primary hits at an `n` × `n` grid of pixels
     /// spread evenly over the tile (misses left out): where the tile's
-    /// content lies, for the scheduler's reprojection affinity.
-    pub fn sample_hits(&self, camera: &Camera, n: u32) -> Vec<glam::Vec3> {
-        let b = camera.basis();
+    /// content lies, for the scheduler's reprojection affinity. `b` is the
+    /// basis the tile's rays came from ([`Camera::sample_basis`] of its
+    /// sample).
+    pub fn sample_hits(&self, b: &CameraBasis, n: u32) -> Vec<glam::Vec3> {
         let Rect {
             x0,
             y0,
@@ -134,6 +135,20 @@ pub async fn render_tile(
     settings: &RenderSettings,
     mode: MissMode,
 ) -> Result<TileImage, LoadError> {
+    render_tile_sample(top, loader, camera, 0, rect, settings, mode).await
+}
+
+/// [`render_tile`] of sample `sample` ([`crate::camera::sample_offset`]):
+/// every pixel bit-identical to [`crate::render::render_sample`]'s.
+pub async fn render_tile_sample(
+    top: &TopLevel,
+    loader: &dyn VoxelLoader,
+    camera: &Camera,
+    sample: u32,
+    rect: Rect,
+    settings: &RenderSettings,
+    mode: MissMode,
+) -> Result<TileImage, LoadError> {
     let inside = rect.width > 0
         && rect.height > 0
         && rect
@@ -159,7 +174,7 @@ pub async fn render_tile(
     } else {
         Isa::Portable
     };
-    let mut ctx = Ctx::new(top, camera.basis(), settings, true);
+    let mut ctx = Ctx::new(top, camera.sample_basis(sample), settings, true);
     ctx.quad &= settings.packets == Packets::Sparse;
     match isa {
         #[cfg(target_arch = "x86_64")]

@@ -9,7 +9,7 @@ use dray_scene::rng::Rng;
 use dray_trace::accel::{ResidentSource, VoxelRef, VoxelSource};
 use dray_trace::camera::Camera;
 use dray_trace::packet::{Occluder, Packet, Step, Traversal};
-use dray_trace::render::{render, Frame, Isa, Packets, RenderSettings};
+use dray_trace::render::{render, render_sample, Frame, Isa, Packets, RenderSettings};
 use glam::Vec3;
 use std::collections::{HashSet, VecDeque};
 use std::sync::Mutex;
@@ -27,7 +27,18 @@ fn brute_force(tris: &[[Vec3; 3]], ray: &Ray) -> Option<Hit> {
 
 /// Every pixel equals brute force exactly: same id, same distance bits.
 fn check_against_brute_force(m: &Model, camera: &Camera, frame: &Frame, what: &str) {
-    let basis = camera.basis();
+    check_sample_against_brute_force(m, camera, 0, frame, what)
+}
+
+/// [`check_against_brute_force`] for sample `sample`'s rays.
+fn check_sample_against_brute_force(
+    m: &Model,
+    camera: &Camera,
+    sample: u32,
+    frame: &Frame,
+    what: &str,
+) {
+    let basis = camera.sample_basis(sample);
     let mut hits = 0;
     for y in 0..camera.height {
         for x in 0..camera.width {
@@ -83,6 +94,32 @@ fn plant_pixels_equal_brute_force_on_every_isa() {
         for (k, cam) in cameras(&m, 96, 72).iter().enumerate() {
             let frame = render(&m.top, &m.source, cam, &settings(isa, &m)).unwrap();
             check_against_brute_force(&m, cam, &frame, &format!("{isa:?} camera {k}"));
+        }
+    }
+}
+
+/// Jittered samples move every ray of the frame and still equal brute
+/// force through the moved rays, on every ISA and, with AVX-512, every
+/// packet width.
+#[test]
+fn jittered_samples_equal_brute_force_on_every_isa() {
+    let m = plant(20_000);
+    let mut runs: Vec<(Isa, Packets)> = isas().into_iter().map(|i| (i, Packets::Auto)).collect();
+    if Isa::detect() == Isa::Avx512 {
+        runs.extend([(Isa::Avx512, Packets::Wide), (Isa::Avx512, Packets::Sparse)]);
+    }
+    for (isa, packets) in runs {
+        let s = RenderSettings {
+            packets,
+            ..settings(isa, &m)
+        };
+        for (k, cam) in cameras(&m, 96, 72).iter().enumerate() {
+            let sample = 1 + 3 * k as u32;
+            let frame = render_sample(&m.top, &m.source, cam, sample, &s).unwrap();
+            let what = format!("{isa:?} {packets:?} camera {k} sample {sample}");
+            check_sample_against_brute_force(&m, cam, sample, &frame, &what);
+            let centre = render(&m.top, &m.source, cam, &s).unwrap();
+            assert_ne!(frame.depth, centre.depth, "{what}: the rays did not move");
         }
     }
 }

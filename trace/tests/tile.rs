@@ -8,8 +8,13 @@ use common::{cameras, isas, plant, real_model, settings, Model};
 use dray_scene::rng::Rng;
 use dray_trace::accel::{PreparedVoxel, ResidentSource, VoxelRef, VoxelSource};
 use dray_trace::camera::Camera;
-use dray_trace::render::{render, Frame, Isa, Packets, ReflectRule, RenderSettings};
-use dray_trace::tile::{render_tile, LoadError, MissMode, Rect, TileImage, VoxelLoader};
+use dray_trace::image::Accumulator;
+use dray_trace::render::{
+    render, render_sample, render_samples, Frame, Isa, Packets, ReflectRule, RenderSettings,
+};
+use dray_trace::tile::{
+    render_tile, render_tile_sample, LoadError, MissMode, Rect, TileImage, VoxelLoader,
+};
 use futures::future::BoxFuture;
 use std::collections::VecDeque;
 use std::sync::{Arc, Mutex};
@@ -292,6 +297,74 @@ async fn bunny_tiles_equal_the_frame() {
                 .await;
             }
         }
+    }
+}
+
+/// A jittered sample's tiles equal that sample's frame, shaded and grey,
+/// with voxels arriving in random order; `render_samples` is sample 0's
+/// depth and ids with the samples' colours averaged.
+#[tokio::test(start_paused = true)]
+async fn sample_tiles_equal_the_sample_frame() {
+    let m = plant(20_000);
+    let cam = cameras(&m, 64, 48)[1];
+    for isa in isas() {
+        let s = shaded(isa, &m);
+        let mut acc = Accumulator::new(cam.width, cam.height);
+        for sample in 0..3 {
+            let frame = render_sample(&m.top, &m.source, &cam, sample, &s).unwrap();
+            acc.add(&frame.rgba).unwrap();
+            let mut grey =
+                render_sample(&m.top, &m.source, &cam, sample, &settings(isa, &m)).unwrap();
+            grey.fill_grey(s.scene_diagonal);
+            for (g, rects) in rect_grids(&cam).into_iter().take(2) {
+                for (name, s, frame) in [
+                    ("shaded", &s, &frame),
+                    ("primary", &settings(isa, &m), &grey),
+                ] {
+                    let loader = TinyCache::new(&m.source, 3, 7 + u64::from(sample));
+                    for &rect in &rects {
+                        let what = format!("{isa:?} {name} sample {sample} {g} {rect:?}");
+                        let tile = render_tile_sample(
+                            &m.top,
+                            &loader,
+                            &cam,
+                            sample,
+                            rect,
+                            s,
+                            MissMode::Suspend,
+                        )
+                        .await
+                        .unwrap_or_else(|e| panic!("{what}: {e}"));
+                        check_tile(frame, &tile, &what);
+                    }
+                }
+            }
+        }
+        let first = render(&m.top, &m.source, &cam, &s).unwrap();
+        let one = render_samples(&m.top, &m.source, &cam, 1, &s).unwrap();
+        assert!(
+            one.rgba == first.rgba && one.primid == first.primid,
+            "{isa:?}: one sample"
+        );
+        let three = render_samples(&m.top, &m.source, &cam, 3, &s).unwrap();
+        assert!(
+            three.rgba == acc.image(),
+            "{isa:?}: the mean of the samples"
+        );
+        assert!(
+            three.rgba != first.rgba,
+            "{isa:?}: the samples changed nothing"
+        );
+        assert_eq!(three.primid, first.primid, "{isa:?}: sample 0's ids");
+        assert!(
+            three
+                .depth
+                .iter()
+                .zip(&first.depth)
+                .all(|(a, b)| a.to_bits() == b.to_bits()),
+            "{isa:?}: sample 0's depth"
+        );
+        assert_eq!(three.stats.primary_rays, 3 * first.stats.primary_rays);
     }
 }
 

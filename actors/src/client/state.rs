@@ -396,7 +396,7 @@ fn finish_tile(
             let side = job.tile.w.max(job.tile.h);
             let hits: Vec<[f32; 3]> = img
                 .sample_hits(
-                    &job.camera,
+                    &job.camera.basis(),
                     side.div_ceil(HIT_SPACING).clamp(1, HIT_GRID_MAX),
                 )
                 .iter()
