@@ -110,6 +110,73 @@ fn eight_clients_with_tiny_caches_and_5ms_links_finish_a_walkthrough() {
     assert!(dir.path().join("out/frames/frame-00005.png").exists());
 }
 
+/// With `render.samples = 4` each camera of the walk is rendered as four
+/// frames (samples 0 to 3) and the display saves their mean: the PNG, the
+/// depth and the ids of every camera equal, byte for byte, what `dray
+/// render --spp 4` writes for that camera.
+#[test]
+fn a_walkthrough_with_samples_saves_dray_render_spp_images() {
+    let dir = tempfile::tempdir().unwrap();
+    let db = plant_db(dir.path(), 30_000);
+    let path = dir.path().join("walk.toml");
+    write_path(&db, &path, 3);
+    let text = config_text(&db, &path, dir.path(), 2, 0.15, "", "");
+    let text = text.replacen("tile_size = 16\n", "tile_size = 16\nsamples = 4\n", 1);
+    let (_, cfg) = config(dir.path(), &text);
+    assert_eq!(cfg.render.samples, 4);
+    let run = rt().block_on(sim(&cfg, &RunOptions::default())).unwrap();
+    let cameras = frame_cameras(&cfg).unwrap();
+    assert_eq!(cameras.len(), 3);
+    assert!(run.display.complete, "{:?}", run.display.stopped_early);
+    assert_eq!(run.display.frames.len(), 12, "a metrics row per sample");
+    let csv = std::fs::read_to_string(dir.path().join("out/metrics.csv")).unwrap();
+    assert_eq!(csv.lines().count(), 1 + 12, "{csv}");
+    let frames = dir.path().join("out/frames");
+    let mut saved: Vec<String> = std::fs::read_dir(&frames)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    saved.sort();
+    let mut expected: Vec<String> = (0..3)
+        .flat_map(|k| ["png", "pfm", "primid"].map(|ext| format!("frame-{k:05}.{ext}")))
+        .collect();
+    expected.sort();
+    assert_eq!(saved, expected, "one image per camera");
+    let xyz = |v: [f32; 3]| format!("{},{},{}", v[0], v[1], v[2]);
+    for (k, c) in cameras.iter().enumerate() {
+        let stem = dir.path().join(format!("render-{k}"));
+        let file = |ext: &str| stem.with_extension(ext).display().to_string();
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_dray"))
+            .args(["render", &db.display().to_string()])
+            .args([
+                "--eye",
+                &xyz(c.eye),
+                "--look",
+                &xyz(c.look),
+                "--up",
+                &xyz(c.up),
+            ])
+            .args(["--fov", &c.fov_y_deg.to_string()])
+            .args(["--width", "96", "--height", "64", "--shadows"])
+            .args(["--reflections", "1", "--threads", "1", "--spp", "4"])
+            .args(["--out", &file("png"), "--depth-out", &file("pfm")])
+            .args(["--primid-out", &file("primid")])
+            .output()
+            .unwrap();
+        assert!(out.status.success(), "{out:?}");
+        for ext in ["png", "pfm", "primid"] {
+            let cluster = std::fs::read(frames.join(format!("frame-{k:05}.{ext}"))).unwrap();
+            let render = std::fs::read(file(ext)).unwrap();
+            assert!(cluster == render, "camera {k}: the .{ext} files differ");
+        }
+        // Four samples are not the centres' image: the edges are smoothed.
+        let (rgba, _, _) = reference(&cfg, c);
+        let (_, _, png) =
+            dray_trace::image::decode_png(&std::fs::read(file("png")).unwrap()).unwrap();
+        assert!(png != rgba, "camera {k}: the samples changed nothing");
+    }
+}
+
 #[test]
 fn config_mistakes_stop_startup_naming_the_key() {
     let dir = tempfile::tempdir().unwrap();

@@ -269,6 +269,7 @@ fn display_options(cfg: &Config, opts: &RunOptions) -> Result<DisplayOptions, Cl
         save_frames: cfg.display.save_frames,
         keep_frames: opts.keep_frames,
         web,
+        samples: cfg.render.samples,
     })
 }
 

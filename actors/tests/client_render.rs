@@ -53,7 +53,7 @@ async fn run(db: &Db, cache_bytes: u64, mode: MissMode, hint: bool, outage: bool
 /// The same with any client options.
 async fn run_with(db: &Db, opts: ClientOptions, hint: bool, outage: bool) -> Run {
     let capacity = opts.threads + opts.tiles_ahead;
-    let r = render_once(db, opts, hint, outage, false).await;
+    let r = render_once(db, opts, hint, outage, false, 0).await;
     // One slot a finished tile, besides the first ones.
     assert!(
         r.out.requested <= capacity + 24,
@@ -67,18 +67,20 @@ async fn run_with(db: &Db, opts: ClientOptions, hint: bool, outage: bool) -> Run
 /// and the fake front end, which hands out as many tiles as the client
 /// may hold (`threads + max_tiles_ahead`). With `outage`, the store is cut
 /// off mid-frame and brought back; with `far_scheduler`, the scheduler is
-/// 5 ms away too.
+/// 5 ms away too. The frame is sample `sample` of the camera.
 async fn render_once(
     db: &Db,
     opts: ClientOptions,
     hint: bool,
     outage: bool,
     far_scheduler: bool,
+    sample: u32,
 ) -> Run {
     let capacity = opts.threads + opts.max_tiles_ahead;
     let net = InProcNet::new();
     let (_store_bus, store) = start_store(&net, 0, db.path.clone(), Shard::ALL);
     let mut fe = FakeFrontEnd::new(&net);
+    fe.sample = sample;
     let client_bus = net.add_node(names::client_node(0), Role::Client).unwrap();
     let shape = LinkShape {
         latency: LATENCY,
@@ -156,6 +158,19 @@ async fn suspend_mode_with_a_cache_of_three_voxels_equals_the_reference() {
     assert_eq!(s.prefetched, 0);
 }
 
+/// A jittered sample (every ray moved within its pixel), its voxels
+/// fetched into a small cache, equals `dray render`'s frame of that sample.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_jittered_sample_equals_the_reference_of_that_sample() {
+    let db = plant_db(20_000);
+    let want = reference_sample(&db.db, 3);
+    assert_ne!(want.depth, reference(&db.db).depth, "the rays moved");
+    let budget = 3 * mean_voxel_bytes(&db.db);
+    let opts = options(budget, MissMode::Suspend, 1);
+    let r = render_once(&db, opts, false, false, false, 3).await;
+    assert_same(&r.out, &want, "sample 3, small cache");
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn suspend_mode_with_a_big_cache_fetches_each_voxel_once() {
     let db = plant_db(20_000);
@@ -220,7 +235,7 @@ async fn a_client_whose_threads_run_dry_asks_for_more_tiles_ahead() {
         ..options(1 << 30, MissMode::Suspend, 1)
     };
     // The fake scheduler hands out whatever the client may hold.
-    let Run { out, summary } = render_once(&db, opts, false, false, true).await;
+    let Run { out, summary } = render_once(&db, opts, false, false, true, 0).await;
     assert_same(&out, &want, "tiles asked ahead as the threads ran dry");
     assert_eq!(summary.tiles, 24);
     // The fake scheduler hands out only what was asked for, so holding

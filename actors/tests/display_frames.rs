@@ -133,6 +133,7 @@ fn start(frames: usize, ahead: usize, output: Option<std::path::PathBuf>) -> Clu
         save_frames: true,
         keep_frames: true,
         web: None,
+        samples: 1,
     };
     Cluster {
         _net: net,

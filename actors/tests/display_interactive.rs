@@ -93,6 +93,7 @@ async fn start(stop: impl std::future::Future<Output = ()> + Send + 'static) -> 
         save_frames: false,
         keep_frames: false,
         web: Some(web),
+        samples: 1,
     };
     Fixture {
         _net: net,

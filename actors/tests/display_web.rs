@@ -191,6 +191,7 @@ async fn display_web_viewer_shows_the_displays_latest_frame() {
             save_frames: true,
             keep_frames: false,
             web: Some(addr),
+            samples: 1,
         },
     ));
     let camera = |d: Option<Delivery>| match d {

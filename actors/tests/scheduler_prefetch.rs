@@ -189,6 +189,8 @@ async fn scheduler_prefetcher_hints_the_voxels_of_each_clients_tiles() {
         let u = Message::CameraUpdate(CameraUpdate {
             seq,
             camera: cam(k),
+            sample: 0,
+            format: None,
         });
         feeder.send(&names::prefetcher(), u).await.unwrap();
     }
@@ -241,6 +243,8 @@ async fn scheduler_prefetcher_hints_the_voxels_of_each_clients_tiles() {
     let u = Message::CameraUpdate(CameraUpdate {
         seq: 2,
         camera: cam(2.0),
+        sample: 0,
+        format: None,
     });
     feeder.send(&names::prefetcher(), u).await.unwrap();
     for mb in clients.iter_mut() {
@@ -260,6 +264,8 @@ async fn scheduler_prefetcher_hints_the_voxels_of_each_clients_tiles() {
         let u = Message::CameraUpdate(CameraUpdate {
             seq,
             camera: cam(seq as f32 * 0.5),
+            sample: 0,
+            format: None,
         });
         feeder.send(&names::prefetcher(), u).await.unwrap();
         if let Some(h) = hint(&mut clients[0]).await {
@@ -278,6 +284,8 @@ async fn scheduler_prefetcher_hints_the_voxels_of_each_clients_tiles() {
     let u = Message::CameraUpdate(CameraUpdate {
         seq: 11,
         camera: cam(5.5),
+        sample: 0,
+        format: None,
     });
     feeder.send(&names::prefetcher(), u).await.unwrap();
     assert_eq!(
@@ -303,6 +311,8 @@ async fn scheduler_prefetcher_hints_the_voxels_of_each_clients_tiles() {
         let u = Message::CameraUpdate(CameraUpdate {
             seq: frame + 1,
             camera: cam(frame as f32 * 0.5),
+            sample: 0,
+            format: None,
         });
         feeder.send(&names::prefetcher(), u).await.unwrap();
         let to_0 = hint(&mut clients[0]).await.map(|h| h.frame);

@@ -301,7 +301,12 @@ impl Cluster {
         self.display
             .send(
                 &names::assigner(),
-                Message::CameraUpdate(CameraUpdate { seq, camera }),
+                Message::CameraUpdate(CameraUpdate {
+                    seq,
+                    camera,
+                    sample: 0,
+                    format: None,
+                }),
             )
             .await
             .unwrap();
@@ -314,6 +319,8 @@ impl Cluster {
                 Message::CameraUpdate(CameraUpdate {
                     seq: k,
                     camera: camera(k),
+                    sample: 0,
+                    format: None,
                 }),
             )
             .await
@@ -713,6 +720,8 @@ async fn assigner_releases_one_frame_at_a_time_and_drops_the_oldest() {
         Message::CameraUpdate(CameraUpdate {
             seq,
             camera: camera(seq),
+            sample: 0,
+            format: None,
         })
     };
     for seq in [0, 1, 1, 0, 2] {

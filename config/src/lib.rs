@@ -237,6 +237,16 @@ pub struct RenderConfig {
     /// Times the camera path is flown (later loops run on warm caches).
     #[serde(default = "default_loops")]
     pub loops: u32,
+    /// Samples per pixel of each camera (of the path, or of `frames`):
+    /// each camera is rendered this many times, samples 0..samples with
+    /// jittered rays, as consecutive frames, and the display averages
+    /// them into the camera's image. Not used in interactive mode.
+    #[serde(default = "default_samples")]
+    pub samples: u32,
+}
+
+fn default_samples() -> u32 {
+    1
 }
 
 fn default_loops() -> u32 {
@@ -786,6 +796,7 @@ impl Config {
                 format!("{} is not in 1..=1000", r.loops),
             ));
         }
+        dray_protocol::check_samples(r.samples).map_err(|m| invalid("render.samples", m))?;
         if self.display.frames_ahead == 0 || self.display.frames_ahead > 16 {
             return Err(invalid(
                 "display.frames_ahead",

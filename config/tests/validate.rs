@@ -52,6 +52,15 @@ fn the_local_example_loads() {
     );
     assert!(!cfg.links.client_store.is_shaped());
     assert_eq!(cfg.scheduler.max_block_px, 128);
+    assert_eq!(cfg.render.samples, 1);
+    let more = example_text().replacen("samples = 1 ", "samples = 1024 ", 1);
+    assert_eq!(Config::parse(&more).unwrap().render.samples, 1024);
+    let unset = example_text().replacen("samples = 1 ", "", 1);
+    assert_eq!(
+        Config::parse(&unset).unwrap().render.samples,
+        1,
+        "the default"
+    );
     let unset = example_text().replacen("max_block_px = 128", "", 1);
     let cfg = Config::parse(&unset).unwrap();
     assert_eq!(cfg.scheduler.max_block_px, 128, "the default");
@@ -110,6 +119,16 @@ fn mistakes_name_their_key() {
         ),
         "stores[1].address",
         "also scheduler.address",
+    );
+    assert_names(
+        broken("samples = 1 ", "samples = 0 "),
+        "render.samples",
+        "0 is not in 1..=1024",
+    );
+    assert_names(
+        broken("samples = 1 ", "samples = 1025 "),
+        "render.samples",
+        "1025 is not in 1..=1024",
     );
     assert_names(
         broken("tile_size = 32", "tile_size = 1000"),

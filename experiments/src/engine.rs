@@ -74,7 +74,8 @@ pub(crate) fn run(
     Ok(RunOutput { summary, wall_s })
 }
 
-/// The `render` engine: every frame of the run's cameras traced in this
+/// The `render` engine: every frame of the run's cameras (each camera's
+/// `render.samples` samples, as the cluster renders them) traced in this
 /// process with the whole model loaded, on as many threads as the clients
 /// have together, reported as the display reports a cluster's frames
 /// (nothing fetched, no link used). Loading is not timed, as a client's
@@ -95,9 +96,14 @@ fn render(cfg: &Config) -> Result<serde_json::Value, String> {
         dray_trace::render::Isa::detect(),
     );
     let (w, h) = (cfg.render.width, cfg.render.height);
-    let mut frames = Vec::with_capacity(cameras.len());
-    for (i, c) in cameras.iter().enumerate() {
-        let frame = dray_trace::render::render(&top, &source, &kernel_camera(c, w, h), &settings)
+    let samples = cfg.render.samples.max(1);
+    let mut frames = Vec::with_capacity(cameras.len() * samples as usize);
+    let each_sample = cameras
+        .iter()
+        .flat_map(|c| (0..samples).map(move |k| (c, k)));
+    for (i, (c, sample)) in each_sample.enumerate() {
+        let camera = kernel_camera(c, w, h);
+        let frame = dray_trace::render::render_sample(&top, &source, &camera, sample, &settings)
             .map_err(|id| format!("voxel {id} was not loaded"))?;
         let s = &frame.stats;
         let stats = dray_protocol::FrameStats {

@@ -45,6 +45,7 @@ pub fn one_of_each(voxel_bytes: usize) -> Vec<Message> {
                 want_depth: true,
                 want_prim_ids: true,
             },
+            sample: 3,
         }),
         Message::TileDone(TileDone {
             frame: 7,
@@ -90,6 +91,22 @@ pub fn one_of_each(voxel_bytes: usize) -> Vec<Message> {
         Message::CameraUpdate(CameraUpdate {
             seq: 9,
             camera: camera(),
+            sample: 5,
+            format: Some(FrameFormat {
+                width: 320,
+                height: 240,
+                settings: RenderSettings {
+                    shade: true,
+                    shadows: true,
+                    reflection_depth: 1,
+                    light_dir: [-0.5, 1.0, 0.0],
+                    reflective: Reflective::Color([200, 200, 210]),
+                    reflectance: 0.4,
+                    voxel_colors: false,
+                    want_depth: false,
+                    want_prim_ids: false,
+                },
+            }),
         }),
         Message::FrameDone(FrameDone {
             frame: 7,
@@ -173,6 +190,7 @@ pub fn one_of_each(voxel_bytes: usize) -> Vec<Message> {
                 want_depth: false,
                 want_prim_ids: false,
             },
+            sample: 2,
         }),
         Message::FrameAssigned(FrameAssigned { frame: 8 }),
         Message::TileOwners(TileOwners {

@@ -43,7 +43,7 @@ pub type VoxelId = u32;
 // The version number, written once for both `PROTOCOL_VERSION` and `ALPN`.
 macro_rules! protocol_version {
     () => {
-        6
+        7
     };
 }
 
@@ -54,7 +54,9 @@ macro_rules! protocol_version {
 /// 4: tile owners carry the frame's misses (the prefetcher's throttle);
 /// 5: tile and frame statistics carry the voxel bytes after decompression;
 /// 6: a client reports a voxel no store serves intact (`VoxelLost`), and
-/// tile and frame statistics carry the bytes each link class carried.
+/// tile and frame statistics carry the bytes each link class carried;
+/// 7: frames carry a sample index (jittered rays), and a camera update
+/// may change the frames' size and shading (`FrameFormat`).
 pub const PROTOCOL_VERSION: u32 = protocol_version!();
 
 /// ALPN protocol id spoken over QUIC: `dray/` and [`PROTOCOL_VERSION`].

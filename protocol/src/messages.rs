@@ -143,6 +143,10 @@ pub struct AssignTile {
     pub height: u32,
     /// Shading settings.
     pub settings: RenderSettings,
+    /// Which sample of the camera the frame is: its rays pass through
+    /// each pixel at the sample's offset from the centre (0: the centre;
+    /// `dray_trace::camera::sample_offset`).
+    pub sample: u32,
 }
 
 /// Bytes links carried, by link class (the config's `[links.*]`), both
@@ -261,13 +265,32 @@ pub struct VoxelLost {
     pub skipped: bool,
 }
 
-/// The display moves the camera.
+/// A frame's size and shading.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FrameFormat {
+    /// Image width in pixels, 1 to [`crate::MAX_IMAGE_SIDE`].
+    pub width: u32,
+    /// Image height in pixels, 1 to [`crate::MAX_IMAGE_SIDE`].
+    pub height: u32,
+    /// Shading.
+    pub settings: RenderSettings,
+}
+
+/// The display asks for a frame: it moves the camera, or renders another
+/// sample of the same camera.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct CameraUpdate {
-    /// Increases with each update; older ones are ignored.
+    /// Increases with each update; older ones are ignored. The frame
+    /// number.
     pub seq: u64,
     /// The new camera.
     pub camera: Camera,
+    /// Which sample of this camera the frame is (0: every ray through its
+    /// pixel's centre; see [`AssignTile::sample`]).
+    pub sample: u32,
+    /// From this update on, frames have this size and shading; `None`
+    /// keeps the current ones (at first, the frame assigner's).
+    pub format: Option<FrameFormat>,
 }
 
 /// One client's share of a frame.
@@ -401,6 +424,8 @@ pub struct FrameStart {
     pub height: u32,
     /// Shading.
     pub settings: RenderSettings,
+    /// Which sample of the camera the frame is ([`AssignTile::sample`]).
+    pub sample: u32,
 }
 
 /// The scheduler has handed out every tile of a frame at least once.
@@ -833,7 +858,10 @@ impl Message {
             Message::Shutdown(s) if s.reason.len() > MAX_TEXT_LEN => {
                 Err(format!("reason of {} bytes is too long", s.reason.len()))
             }
-            Message::CameraUpdate(c) => check_camera(&c.camera),
+            Message::CameraUpdate(c) => check_camera(&c.camera).and_then(|_| match &c.format {
+                Some(f) => check_frame(f.width, f.height, &f.settings),
+                None => Ok(()),
+            }),
             Message::PrefetchHint(p) if p.voxels.0.len() > MAX_PREFETCH_IDS => Err(format!(
                 "{} voxel ids, more than {MAX_PREFETCH_IDS}",
                 p.voxels.0.len()

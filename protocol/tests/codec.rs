@@ -90,14 +90,73 @@ fn invalid_contents_are_refused_on_both_sides() {
         decode_envelope(&raw),
         Err(ProtocolError::Invalid { .. })
     ));
-    let Message::CameraUpdate(mut c) = msgs.remove(5) else {
+    let Message::CameraUpdate(c) = msgs.remove(5) else {
         panic!("sixth remaining example is a camera update")
     };
-    c.camera.fov_y_deg = f32::NAN;
-    let raw = postcard::to_stdvec(&env(Message::CameraUpdate(c))).unwrap();
+    let mut nan = c.clone();
+    nan.camera.fov_y_deg = f32::NAN;
+    let raw = postcard::to_stdvec(&env(Message::CameraUpdate(nan))).unwrap();
     assert!(matches!(
         decode_envelope(&raw),
         Err(ProtocolError::Invalid { .. })
+    ));
+}
+
+/// A camera update's new frame format is checked on receipt with the
+/// limits every image size has ([`check_image_side`]), and so are its
+/// settings; a sample index is any u32.
+#[test]
+fn a_camera_update_s_format_is_checked_on_receipt() {
+    let Some(Message::CameraUpdate(c)) = one_of_each(10)
+        .into_iter()
+        .find(|m| m.kind() == MessageKind::CameraUpdate)
+    else {
+        panic!("no camera update among the examples")
+    };
+    let format = c.format.clone().expect("the example changes the format");
+    let with = |f: Option<FrameFormat>| {
+        let e = env(Message::CameraUpdate(CameraUpdate {
+            format: f,
+            sample: u32::MAX,
+            ..c.clone()
+        }));
+        decode_envelope(&postcard::to_stdvec(&e).unwrap()).map(|d| d.msg)
+    };
+    assert!(with(None).is_ok());
+    let largest = FrameFormat {
+        width: MAX_IMAGE_SIDE,
+        height: 1,
+        ..format.clone()
+    };
+    assert!(matches!(
+        with(Some(largest.clone())),
+        Ok(Message::CameraUpdate(CameraUpdate { format: Some(f), sample: u32::MAX, .. })) if f == largest
+    ));
+    for (width, height) in [
+        (0, 480),
+        (640, 0),
+        (MAX_IMAGE_SIDE + 1, 480),
+        (640, u32::MAX),
+    ] {
+        let Err(ProtocolError::Invalid { kind, reason }) = with(Some(FrameFormat {
+            width,
+            height,
+            ..format.clone()
+        })) else {
+            panic!("{width}x{height} accepted")
+        };
+        assert_eq!(kind, MessageKind::CameraUpdate);
+        let side = if width == 640 { height } else { width };
+        assert!(
+            reason.contains(&check_image_side(side).unwrap_err()),
+            "{width}x{height}: {reason}"
+        );
+    }
+    let mut dark = format.clone();
+    dark.settings.light_dir = [0.0; 3];
+    assert!(matches!(
+        with(Some(dark)),
+        Err(ProtocolError::Invalid { reason, .. }) if reason.contains("light direction")
     ));
 }
 
@@ -286,6 +345,7 @@ fn maximal_messages_fit_their_limits() {
                 want_depth: true,
                 want_prim_ids: true,
             },
+            sample: u32::MAX,
         }),
         Message::TileDone(TileDone {
             frame: u64::MAX,
@@ -308,6 +368,25 @@ fn maximal_messages_fit_their_limits() {
         Message::CameraUpdate(CameraUpdate {
             seq: u64::MAX,
             camera,
+            sample: u32::MAX,
+            format: Some(FrameFormat {
+                width: MAX_IMAGE_SIDE,
+                height: MAX_IMAGE_SIDE,
+                settings: RenderSettings {
+                    shade: true,
+                    shadows: true,
+                    reflection_depth: MAX_REFLECTION_DEPTH,
+                    light_dir: [f32::MIN; 3],
+                    reflective: Reflective::Ids {
+                        start: u32::MAX - 1,
+                        end: u32::MAX,
+                    },
+                    reflectance: 1.0,
+                    voxel_colors: true,
+                    want_depth: true,
+                    want_prim_ids: true,
+                },
+            }),
         }),
         Message::FrameDone(FrameDone {
             frame: u64::MAX,
@@ -362,6 +441,7 @@ fn maximal_messages_fit_their_limits() {
                 want_depth: true,
                 want_prim_ids: true,
             },
+            sample: u32::MAX,
         }),
         Message::FrameAssigned(FrameAssigned { frame: u64::MAX }),
         Message::TileOwners(TileOwners {

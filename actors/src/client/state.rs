@@ -341,6 +341,7 @@ fn job(a: AssignTile, diagonal: f32, isa: Isa) -> TileJob {
         frame: a.frame,
         tile: a.tile,
         camera: kernel_camera(&a.camera, a.width, a.height),
+        sample: a.sample,
         settings: Arc::new(kernel_settings(&a.settings, diagonal, 1, isa)),
         want_depth: a.settings.want_depth,
         want_prim_ids: a.settings.want_prim_ids,
@@ -396,7 +397,7 @@ fn finish_tile(
             let side = job.tile.w.max(job.tile.h);
             let hits: Vec<[f32; 3]> = img
                 .sample_hits(
-                    &job.camera.basis(),
+                    &job.camera.sample_basis(job.sample),
                     side.div_ceil(HIT_SPACING).clamp(1, HIT_GRID_MAX),
                 )
                 .iter()
@@ -670,7 +671,7 @@ mod tests {
         let threads: Vec<usize> = (0..3).map(|_| assign(&mut c, 1).0).collect();
         assert_eq!(threads, [0, 1, 0]);
         let (_, job) = assign(&mut c, 1);
-        assert_eq!(job.frame, 1);
+        assert_eq!((job.frame, job.sample), (1, assignment(1).sample));
         assert_eq!((job.camera.width, job.camera.height), (64, 64));
     }
 

@@ -9,7 +9,7 @@ use dray_protocol::TileRect;
 use dray_trace::accel::TopLevel;
 use dray_trace::camera::Camera;
 use dray_trace::render::{PacketChooser, Packets, RenderSettings};
-use dray_trace::tile::{render_tile, LoadError, MissMode, Rect, TileImage};
+use dray_trace::tile::{render_tile_sample, LoadError, MissMode, Rect, TileImage};
 use futures::future::{select, Either};
 use futures::stream::{FuturesUnordered, StreamExt};
 use std::cell::Cell;
@@ -25,6 +25,9 @@ pub(crate) struct TileJob {
     pub frame: u64,
     pub tile: TileRect,
     pub camera: Camera,
+    /// Which sample of the camera the frame is (where in each pixel the
+    /// rays pass).
+    pub sample: u32,
     pub settings: Arc<RenderSettings>,
     pub want_depth: bool,
     pub want_prim_ids: bool,
@@ -93,7 +96,16 @@ async fn run_job(
         },
         ..(*job.settings).clone()
     };
-    let image = render_tile(&ctx.top, &loader, &job.camera, rect, &settings, ctx.mode).await;
+    let image = render_tile_sample(
+        &ctx.top,
+        &loader,
+        &job.camera,
+        job.sample,
+        rect,
+        &settings,
+        ctx.mode,
+    )
+    .await;
     if let Ok(image) = &image {
         let mut c = chooser.get();
         c.learn(image.stats.child_hits, image.stats.child_lanes);

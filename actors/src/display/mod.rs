@@ -9,6 +9,10 @@
 //! of `metrics.csv` and, with `save_frames`, a PNG
 //! (`frames/frame-NNNNN.png`, plus `.pfm` depth and `.primid` ids when the
 //! tiles carry them); with a viewer, a refresh of the web page ([`web`]).
+//! With [`DisplayOptions::samples`] above 1, each camera goes out that many
+//! times, one sample a frame, and what is shown, saved and kept per camera
+//! is the mean of its samples (`samples.rs`); every frame still gets its
+//! metrics row.
 //!
 //! In interactive mode ([`DisplayOptions::interactive`]) the camera comes
 //! from a user instead: the display starts from the first camera and
@@ -50,6 +54,7 @@ mod frames;
 mod metrics;
 pub mod moves;
 pub mod path;
+mod samples;
 mod state;
 pub mod web;
 
@@ -116,6 +121,10 @@ pub struct DisplayOptions {
     pub keep_frames: bool,
     /// Serve the live web viewer there.
     pub web: Option<std::net::SocketAddr>,
+    /// Samples per camera (`render.samples`; 0 counts as 1): each camera
+    /// is sent as this many frames, samples 0 to `samples - 1`, and its
+    /// image is their mean. Interactive mode renders sample 0 only.
+    pub samples: u32,
 }
 
 const ACTOR: &str = "display";
@@ -456,6 +465,7 @@ impl Sink {
                             d.shown(image);
                         }
                     }
+                    Out::Metrics(metrics) => self.log(&metrics)?,
                     Out::End(end) => return Ok(Some(end)),
                 }
             }
@@ -491,6 +501,15 @@ impl Sink {
             out.write(w, h, image).await?;
             Ok(None)
         }
+    }
+
+    /// Appends a frame's row to `metrics.csv`, if one is written.
+    fn log(&mut self, metrics: &FrameMetrics) -> Result<(), ActorError> {
+        if let Some(out) = &mut self.output {
+            let path = out.csv.path().to_path_buf();
+            out.csv.append(metrics).map_err(|e| io_err(&path, e))?;
+        }
+        Ok(())
     }
 
     /// Ends the run: waits for the frame files (a failure only fails a

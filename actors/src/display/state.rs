@@ -5,6 +5,7 @@
 //! run loop carries out.
 
 use super::frames::{Frames, ReadyFrame};
+use super::samples::{Added, Samples};
 use super::{
     moves, DisplayOptions, DisplaySummary, FrameImage, FrameMetrics, Move, IDLE_FRAMES,
     MISSING_PIXELS_GRACE, SEND_RETRY,
@@ -33,6 +34,9 @@ pub(super) enum Out {
         image: FrameImage,
         metrics: FrameMetrics,
     },
+    /// A frame that added a sample to a camera whose image is not
+    /// complete yet: only its metrics row.
+    Metrics(FrameMetrics),
     /// The run is over; nothing follows.
     End(End),
 }
@@ -80,6 +84,8 @@ pub(super) struct Display {
     idle: Duration,
     /// The display's own link, charged to each frame shown.
     link: LinkTake,
+    /// The samples of the camera being shown, averaged into its image.
+    samples: Samples,
 }
 
 impl Display {
@@ -90,10 +96,15 @@ impl Display {
             up: [0.0, 1.0, 0.0],
             fov_y_deg: 45.0,
         });
+        let samples = Samples::new(
+            if opts.interactive { 1 } else { opts.samples },
+            opts.width,
+            opts.height,
+        );
         let requested = if opts.interactive {
             0
         } else {
-            opts.cameras.len()
+            opts.cameras.len() * samples.per_camera() as usize
         };
         Display {
             frames: Frames::new(opts.width, opts.height),
@@ -110,6 +121,7 @@ impl Display {
             since_move: 0,
             idle: Duration::ZERO,
             link,
+            samples,
         }
     }
 
@@ -121,8 +133,9 @@ impl Display {
         self.opts.frames_ahead.max(1)
     }
 
+    /// Frames of the run: every camera's samples.
     fn total(&self) -> u64 {
-        self.opts.cameras.len() as u64
+        self.opts.cameras.len() as u64 * u64::from(self.samples.per_camera())
     }
 
     /// Whether another camera is due (ignoring `frames_ahead`).
@@ -268,13 +281,19 @@ impl Display {
             return;
         }
         let seq = self.sent;
-        let camera = if self.opts.interactive {
-            self.current
+        let (camera, sample) = if self.opts.interactive {
+            (self.current, 0)
         } else {
-            self.opts.cameras[seq as usize]
+            let (camera, sample) = self.samples.of(seq);
+            (self.opts.cameras[camera as usize], sample)
         };
         self.sending = true;
-        out.push(Out::Camera(CameraUpdate { seq, camera }));
+        out.push(Out::Camera(CameraUpdate {
+            seq,
+            camera,
+            sample,
+            format: None,
+        }));
     }
 
     /// The camera pushed last has left: its frame is outstanding, and the
@@ -352,10 +371,16 @@ impl Display {
             misses = m.misses,
             "frame shown"
         );
-        out.push(Out::Show {
-            image,
-            metrics: m.clone(),
-        });
+        match self.samples.add(image) {
+            Added::Camera(image) => out.push(Out::Show {
+                image,
+                metrics: m.clone(),
+            }),
+            Added::Pending(rgba) => {
+                self.frames.recycle(rgba);
+                out.push(Out::Metrics(m.clone()));
+            }
+        }
         self.summary.push(m);
     }
 
@@ -388,7 +413,7 @@ impl Display {
             self.summary.frames_requested = self.summary.frames.len();
             self.summary.complete = true;
         } else {
-            self.summary.complete = self.summary.frames.len() == self.opts.cameras.len();
+            self.summary.complete = self.summary.frames.len() as u64 == self.total();
         }
         if !self.summary.complete {
             self.summary.stopped_early = stopped.or(Some("stopped".into()));
@@ -428,6 +453,7 @@ mod tests {
             save_frames: false,
             keep_frames: false,
             web: None,
+            samples: 1,
         }
     }
 
@@ -512,7 +538,7 @@ mod tests {
         let mut out = Vec::new();
         d.advance(&mut out);
         assert!(
-            matches!(&out[..], [Out::Camera(CameraUpdate { seq: 0, camera: c })] if *c == camera(0)),
+            matches!(&out[..], [Out::Camera(CameraUpdate { seq: 0, camera: c, sample: 0, format: None })] if *c == camera(0)),
             "{out:?}"
         );
         d.advance(&mut out);
@@ -615,6 +641,63 @@ mod tests {
         let s = d.finish(None);
         assert!(s.complete && s.stopped_early.is_none());
         assert_eq!(s.frames.len(), 2);
+    }
+
+    #[test]
+    fn each_camera_goes_out_once_per_sample_and_shows_their_mean() {
+        let mut d = display(DisplayOptions {
+            samples: 2,
+            ..opts(2, 2)
+        });
+        let mut out = Vec::new();
+        let mut updates = Vec::new();
+        let mut shown_images = Vec::new();
+        let mut rows = 0;
+        d.advance(&mut out);
+        for frame in 0..4 {
+            while let Some(i) = out.iter().position(|o| matches!(o, Out::Camera(_))) {
+                let Out::Camera(u) = out.remove(i) else {
+                    unreachable!()
+                };
+                updates.push((u.seq, u.camera, u.sample));
+                d.camera_sent(Instant::now(), &mut out);
+            }
+            complete(&mut d, frame, &mut out);
+            for o in std::mem::take(&mut out) {
+                match o {
+                    Out::Show { image, metrics } => {
+                        assert_eq!(metrics.frame, frame, "the last sample's row");
+                        shown_images.push(image);
+                        rows += 1;
+                    }
+                    Out::Metrics(m) => {
+                        assert_eq!(m.frame, frame);
+                        rows += 1;
+                    }
+                    Out::End(End::Complete) => assert_eq!(frame, 3, "ends after the last"),
+                    Out::Camera(_) => out.push(o),
+                    Out::Report(_) => {}
+                    other => panic!("{other:?}"),
+                }
+            }
+        }
+        assert_eq!(
+            updates,
+            [
+                (0, camera(0), 0),
+                (1, camera(0), 1),
+                (2, camera(1), 0),
+                (3, camera(1), 1)
+            ]
+        );
+        assert_eq!(rows, 4, "a metrics row per frame");
+        // Frame k's pixels are all k: the cameras' means, rounded half up.
+        let images: Vec<(u64, [u8; 4])> =
+            shown_images.iter().map(|i| (i.frame, i.rgba[0])).collect();
+        assert_eq!(images, [(0, [1, 1, 1, 255]), (1, [3, 3, 3, 255])]);
+        let s = d.finish(None);
+        assert!(s.complete, "{:?}", s.stopped_early);
+        assert_eq!((s.frames.len(), s.frames_requested), (4, 4));
     }
 
     #[test]

@@ -5,6 +5,9 @@
 //! the clients render frame k+1's first tiles while frame k's last ones
 //! finish.
 //!
+//! A camera update's `format` changes the size and shading of its frame and
+//! of every later one; its `sample` goes with its frame.
+//!
 //! Shape: [`Assigner`] owns the queue and what is being assigned; its
 //! handlers (a camera update, a frame assigned, a release that failed, the
 //! retry timer) change it and push effects ([`Out`]: forward a camera to
@@ -12,7 +15,7 @@
 //! handler and carries the effects out.
 
 use crate::ActorError;
-use dray_protocol::{Address, CameraUpdate, FrameStart, Message, RenderSettings};
+use dray_protocol::{Address, CameraUpdate, FrameFormat, FrameStart, Message, RenderSettings};
 use dray_runtime::{Delivery, Mailbox};
 use std::collections::VecDeque;
 use std::time::Duration;
@@ -25,11 +28,11 @@ pub struct AssignerOptions {
     pub scheduler: Address,
     /// The prefetcher, which gets a copy of every camera update.
     pub prefetcher: Option<Address>,
-    /// Image width, pixels.
+    /// Image width, pixels, until a camera update's format changes it.
     pub width: u32,
-    /// Image height, pixels.
+    /// Image height, pixels, until a camera update's format changes it.
     pub height: u32,
-    /// Shading of every frame.
+    /// Shading of the frames, until a camera update's format changes it.
     pub settings: RenderSettings,
 }
 
@@ -52,8 +55,11 @@ enum Out {
 /// The frame assigner's state.
 struct Assigner {
     opts: AssignerOptions,
-    /// Camera updates not released yet, oldest first.
-    queue: VecDeque<CameraUpdate>,
+    /// The size and shading of the frames from the newest update on.
+    format: FrameFormat,
+    /// Frames not released yet, oldest first, each with the format that
+    /// held when its update came.
+    queue: VecDeque<FrameStart>,
     /// The highest `seq` seen.
     newest: Option<u64>,
     /// The frame released and not yet fully assigned.
@@ -67,6 +73,11 @@ struct Assigner {
 impl Assigner {
     fn new(opts: AssignerOptions) -> Assigner {
         Assigner {
+            format: FrameFormat {
+                width: opts.width,
+                height: opts.height,
+                settings: opts.settings.clone(),
+            },
             opts,
             queue: VecDeque::new(),
             newest: None,
@@ -76,9 +87,10 @@ impl Assigner {
         }
     }
 
-    /// The display moved the camera: queue it (dropping the oldest beyond
-    /// [`MAX_QUEUED_FRAMES`]) and forward it to the prefetcher; an update
-    /// not newer than every one seen is ignored.
+    /// The display moved the camera: queue its frame (dropping the oldest
+    /// beyond [`MAX_QUEUED_FRAMES`]), with the update's format from now on,
+    /// and forward it to the prefetcher; an update not newer than every
+    /// one seen is ignored.
     fn camera_update(&mut self, u: CameraUpdate, out: &mut Vec<Out>) {
         if self.newest.is_some_and(|n| u.seq <= n) {
             debug!(seq = u.seq, "old camera update ignored");
@@ -88,12 +100,28 @@ impl Assigner {
         if let Some(p) = &self.opts.prefetcher {
             out.push(Out::Forward(p.clone(), u.clone()));
         }
-        self.queue.push_back(u);
+        if let Some(f) = u.format {
+            info!(
+                frame = u.seq,
+                width = f.width,
+                height = f.height,
+                "frame format changed"
+            );
+            self.format = f;
+        }
+        self.queue.push_back(FrameStart {
+            frame: u.seq,
+            camera: u.camera,
+            width: self.format.width,
+            height: self.format.height,
+            settings: self.format.settings.clone(),
+            sample: u.sample,
+        });
         while self.queue.len() > MAX_QUEUED_FRAMES {
             if let Some(old) = self.queue.pop_front() {
                 self.dropped += 1;
                 warn!(
-                    frame = old.seq,
+                    frame = old.frame,
                     dropped = self.dropped,
                     "camera updates arrive faster than frames: frame dropped"
                 );
@@ -119,10 +147,7 @@ impl Assigner {
             self.assigning = None;
         }
         self.retrying = true;
-        self.queue.push_front(CameraUpdate {
-            seq: start.frame,
-            camera: start.camera,
-        });
+        self.queue.push_front(start);
     }
 
     /// The retry delay is over.
@@ -136,15 +161,9 @@ impl Assigner {
         if self.assigning.is_some() || self.retrying {
             return;
         }
-        if let Some(u) = self.queue.pop_front() {
-            self.assigning = Some(u.seq);
-            out.push(Out::Release(FrameStart {
-                frame: u.seq,
-                camera: u.camera,
-                width: self.opts.width,
-                height: self.opts.height,
-                settings: self.opts.settings.clone(),
-            }));
+        if let Some(start) = self.queue.pop_front() {
+            self.assigning = Some(start.frame);
+            out.push(Out::Release(start));
         }
     }
 }
@@ -229,6 +248,8 @@ mod tests {
         CameraUpdate {
             seq,
             camera: example().camera,
+            sample: 0,
+            format: None,
         }
     }
 
@@ -276,6 +297,70 @@ mod tests {
         assert_eq!((s.frame, s.width, s.height), (7, 64, 48));
         assert_eq!(s.settings, example().settings);
         assert_eq!(s.camera, example().camera);
+    }
+
+    #[test]
+    fn a_format_holds_from_its_update_on_and_a_sample_goes_with_its_frame() {
+        let mut a = assigner(false);
+        let mut out = Vec::new();
+        a.camera_update(update(1), &mut out);
+        let other = RenderSettings {
+            shadows: !example().settings.shadows,
+            reflection_depth: 3,
+            ..example().settings
+        };
+        a.camera_update(
+            CameraUpdate {
+                sample: 4,
+                format: Some(FrameFormat {
+                    width: 320,
+                    height: 200,
+                    settings: other.clone(),
+                }),
+                ..update(2)
+            },
+            &mut out,
+        );
+        a.camera_update(
+            CameraUpdate {
+                sample: 5,
+                ..update(3)
+            },
+            &mut out,
+        );
+        let mut starts = Vec::new();
+        for f in 1..=3 {
+            for o in out.drain(..) {
+                if let Out::Release(s) = o {
+                    starts.push(s);
+                }
+            }
+            a.frame_assigned(f, &mut out);
+        }
+        let got: Vec<_> = starts
+            .iter()
+            .map(|s| (s.frame, s.sample, s.width, s.height, s.settings == other))
+            .collect();
+        assert_eq!(
+            got,
+            [
+                (1, 0, 64, 48, false),
+                (2, 4, 320, 200, true),
+                (3, 5, 320, 200, true)
+            ],
+            "frame 1 was queued before the format changed"
+        );
+        // A frame sent again after a failed release keeps its own format.
+        a.camera_update(update(4), &mut out);
+        let Some(Out::Release(start)) = out.pop() else {
+            panic!("no release");
+        };
+        a.release_failed(start.clone());
+        a.retry_due(&mut out);
+        assert!(
+            matches!(&out[..], [Out::Release(s)] if *s == start),
+            "{out:?}"
+        );
     }
 
     #[test]

@@ -103,6 +103,8 @@ struct Frame {
     number: u64,
     camera: Camera,
     settings: RenderSettings,
+    /// Which sample of the camera the frame is (its tiles carry it).
+    sample: u32,
     grid: TileGrid,
     tiles: Vec<Tile>,
     /// The fresh tiles, queued by the policy.
@@ -146,6 +148,7 @@ impl Frame {
             number: f.frame,
             camera: f.camera,
             settings: f.settings,
+            sample: f.sample,
             grid,
             tiles: (0..n)
                 .map(|_| Tile {
@@ -554,6 +557,7 @@ impl Scheduler {
                         width: frame.grid.width,
                         height: frame.grid.height,
                         settings: frame.settings.clone(),
+                        sample: frame.sample,
                     },
                 });
                 if frame.fresh_left == 0 && !frame.announced {
@@ -999,6 +1003,11 @@ mod tests {
                 continue;
             };
             let tiles = grid.tiles_of(&msg.tile).expect("the frame's tiles");
+            assert_eq!(
+                (msg.frame, msg.sample),
+                (number, start().sample),
+                "the frame's sample"
+            );
             for &i in &tiles {
                 first[i].get_or_insert_with(|| node.clone());
             }

@@ -16,7 +16,7 @@ use dray_runtime::{Bus, Delivery, InProcNet, Mailbox, Name, Role};
 use dray_scene::db::Database;
 use dray_trace::accel::{ResidentSource, TopLevel};
 use dray_trace::camera::Camera;
-use dray_trace::render::{render, Frame, Isa};
+use dray_trace::render::{render_sample, Frame, Isa};
 use std::path::PathBuf;
 use std::time::Duration;
 use tokio::task::JoinHandle;
@@ -88,6 +88,11 @@ pub fn wire_camera(c: &Camera) -> WireCamera {
 
 /// The frame `dray render` gives, every voxel resident.
 pub fn reference(db: &Database) -> Frame {
+    reference_sample(db, 0)
+}
+
+/// The frame of sample `sample` ([`render_sample`]), every voxel resident.
+pub fn reference_sample(db: &Database, sample: u32) -> Frame {
     let top = TopLevel::from_manifest(&db.manifest);
     let source = ResidentSource::load(db).unwrap();
     let settings = kernel_settings(
@@ -96,7 +101,7 @@ pub fn reference(db: &Database) -> Frame {
         2,
         Isa::detect(),
     );
-    render(&top, &source, &camera(db), &settings).unwrap()
+    render_sample(&top, &source, &camera(db), sample, &settings).unwrap()
 }
 
 /// Average prepared size of a voxel.
@@ -110,6 +115,8 @@ pub struct FakeFrontEnd {
     pub scheduler_bus: Bus,
     pub scheduler: Mailbox,
     pub display: Mailbox,
+    /// The sample of the camera the frames are (0 unless set).
+    pub sample: u32,
 }
 
 impl FakeFrontEnd {
@@ -120,6 +127,7 @@ impl FakeFrontEnd {
             scheduler: scheduler_bus.mailbox(name(names::SCHEDULER), 1024).unwrap(),
             display: display_bus.mailbox(name(names::DISPLAY), 1024).unwrap(),
             scheduler_bus,
+            sample: 0,
         }
     }
 }
@@ -205,6 +213,7 @@ pub async fn render_frame(
                         width: WIDTH,
                         height: HEIGHT,
                         settings: wire_settings(),
+                        sample: fe.sample,
                     }),
                 )
                 .await

@@ -370,6 +370,8 @@ mod tests {
         CameraUpdate {
             seq,
             camera: camera_at(0.0),
+            sample: 0,
+            format: None,
         }
     }
 
@@ -600,6 +602,8 @@ mod tests {
                 CameraUpdate {
                     seq,
                     camera: camera_at(seq as f32 * 0.01),
+                    sample: 0,
+                    format: None,
                 },
                 &mut out,
             );
