@@ -116,6 +116,17 @@ pub struct RenderSettings {
     pub want_prim_ids: bool,
 }
 
+/// A frame's size and shading (interim; the spp branch defines it too).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FrameFormat {
+    /// Image width in pixels.
+    pub width: u32,
+    /// Image height in pixels.
+    pub height: u32,
+    /// Shading.
+    pub settings: RenderSettings,
+}
+
 /// A client asks the scheduler for up to `slots` more tiles.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct RequestWork {
