@@ -91,6 +91,29 @@ pub(crate) enum Command {
         #[arg(long, default_value_t = 90)]
         frames: u32,
     },
+    /// Fly through a model in the browser: start a local cluster on a
+    /// database (or on a cluster config with `display.web` and no camera
+    /// path) and print the viewer's address; Ctrl-C stops it.
+    View {
+        /// A database (from `dray preprocess`) or a cluster config (TOML).
+        target: PathBuf,
+        /// Render clients (on a database).
+        #[arg(long, default_value_t = 2)]
+        clients: u32,
+        /// Render threads per client, 0: one per core (on a database).
+        #[arg(long, default_value_t = 1)]
+        threads: u32,
+        /// Where the viewer listens [default: 127.0.0.1:7480, or a free
+        /// port when it is taken] (on a database).
+        #[arg(long, value_name = "IP:PORT")]
+        web: Option<String>,
+        /// Image width at the 1× resolution (on a database).
+        #[arg(long, default_value_t = 960)]
+        width: u32,
+        /// Image height at the 1× resolution (on a database).
+        #[arg(long, default_value_t = 540)]
+        height: u32,
+    },
     /// Start every node of a config on this machine as separate processes
     /// over QUIC, run the camera path, print a summary, stop them all.
     Cluster {

@@ -2,6 +2,7 @@
 
 mod allocator;
 mod cli;
+mod view;
 
 use anyhow::{bail, Context, Result};
 use clap::Parser;
@@ -179,6 +180,26 @@ fn run(cli: Cli) -> Result<ExitCode> {
         } => {
             CameraPath::check_frames(frames).map_err(|m| anyhow::anyhow!("--frames: {m}"))?;
             demo(&config, triangles, frames)?
+        }
+        Command::View {
+            target,
+            clients,
+            threads,
+            web,
+            width,
+            height,
+        } => {
+            let args = view::ViewArgs {
+                target,
+                clients,
+                threads,
+                web,
+                width,
+                height,
+            };
+            let exe = std::env::current_exe().context("finding the dray binary")?;
+            let report = view::view(&args, &exe)?;
+            print_report(&report.summary, &report.events, false);
         }
         Command::Cluster {
             config,

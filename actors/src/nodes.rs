@@ -244,6 +244,10 @@ fn client_options(cfg: &Config, opts: &RunOptions) -> Result<ClientOptions, Clus
     })
 }
 
+/// The environment variable that gives a display node its web viewer's
+/// token (`dray cluster` sets it, to print the viewer's address).
+pub const WEB_TOKEN_ENV: &str = "DRAY_WEB_TOKEN";
+
 fn display_options(cfg: &Config, opts: &RunOptions) -> Result<DisplayOptions, ClusterError> {
     let web = match &cfg.display.web {
         Some(w) => {
@@ -263,10 +267,14 @@ fn display_options(cfg: &Config, opts: &RunOptions) -> Result<DisplayOptions, Cl
         width: cfg.render.width,
         height: cfg.render.height,
         cameras: frame_cameras(cfg)?,
+        settings: crate::settings::wire_settings(&cfg.render),
+        max_samples: cfg.display.max_samples,
+        web_token: std::env::var(WEB_TOKEN_ENV).ok(),
         interactive: interactive(cfg),
         frames_ahead: cfg.display.frames_ahead as usize,
         output: cfg.display.output.clone(),
-        save_frames: cfg.display.save_frames,
+        // An interactive run writes its metrics, not a file per frame.
+        save_frames: cfg.display.save_frames && !interactive(cfg),
         keep_frames: opts.keep_frames,
         web,
         samples: cfg.render.samples,

@@ -90,6 +90,9 @@ pub enum LaunchError {
     /// The stop signals could not be caught.
     #[error("cannot catch SIGINT, SIGTERM and SIGHUP: {0}")]
     Signals(std::io::Error),
+    /// No random token for the web viewer.
+    #[error("cannot make the web viewer's token: {0}")]
+    Token(std::io::Error),
 }
 
 /// The signals that stop a cluster as Ctrl-C does.
@@ -138,6 +141,8 @@ enum Event {
 struct Proc {
     name: String,
     args: Vec<String>,
+    /// Environment variables it gets besides ours.
+    env: Vec<(&'static str, String)>,
     child: Option<Child>,
     tail: VecDeque<String>,
     ready: bool,
@@ -214,6 +219,7 @@ fn spawn(
     }
     let mut child = cmd
         .args(&p.args)
+        .envs(p.env.iter().map(|(k, v)| (k, v)))
         .stdin(Stdio::null())
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
@@ -289,6 +295,7 @@ pub async fn cluster(
         Proc {
             name,
             args,
+            env: Vec::new(),
             child: None,
             tail: VecDeque::new(),
             ready: false,
@@ -303,6 +310,17 @@ pub async fn cluster(
     procs.push(proc_for("scheduler", None));
     let display = procs.len();
     procs.push(proc_for("display", None));
+    // The viewer's token is made here, so that its address can be printed.
+    let viewer_url = match &cfg.display.web {
+        Some(addr) => {
+            let token = crate::display::web::wire::new_token().map_err(LaunchError::Token)?;
+            procs[display]
+                .env
+                .push((crate::nodes::WEB_TOKEN_ENV, token.clone()));
+            Some(format!("http://{addr}/?token={token}"))
+        }
+        None => None,
+    };
     for i in 0..clients {
         procs.push(proc_for("client", Some(i)));
     }
@@ -348,6 +366,9 @@ pub async fn cluster(
                         if !all_ready && procs.iter().all(|p| p.ready) {
                             all_ready = true;
                             println!("all {} nodes joined", procs.len());
+                            if let Some(url) = &viewer_url {
+                                println!("viewer: {url}");
+                            }
                         }
                     } else if let Some(json) = line.strip_prefix("summary ") {
                         summary = serde_json::from_str(json).ok();

@@ -1,43 +1,27 @@
-//! Interactive mode: camera moves sent to the web viewer over a real
-//! loopback socket steer the display's cameras; a fake assigner completes
-//! the frames.
+//! Interactive mode: inputs sent over the viewer's WebSocket steer the
+//! display's frames; a fake assigner completes them. A still view is
+//! refined sample by sample and accumulated; a move starts again; choices
+//! change the frames' format; a pick is answered from a frame's ids.
 
 use dray_actors::display::{
-    moves, run_display_with_viewer, DisplayOptions, DisplaySummary, Move, WebViewer, IDLE_FRAMES,
+    run_display_with_viewer, DisplayOptions, DisplaySummary, WebOptions, WebViewer,
 };
 use dray_actors::{names, ActorError};
 use dray_protocol::{
-    Camera, FrameDone, Message, Name, Role, Shutdown, TileDone, TilePixels, TileRect, TileStats,
+    Blob, Camera, CameraUpdate, FrameDone, Message, Name, PackedF32, PackedU32, Reflective,
+    RenderSettings, Role, Shutdown, TileDone, TilePixels, TileRect, TileStats,
 };
 use dray_runtime::{Delivery, InProcNet, Mailbox};
-use std::net::SocketAddr;
+use futures::{SinkExt, StreamExt};
 use std::time::Duration;
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 use tokio::task::JoinHandle;
+use tokio_tungstenite::tungstenite::Message as Ws;
 
 const W: u32 = 8;
 const H: u32 = 4;
-
-/// Sends raw bytes, returns (status, body).
-async fn request(addr: SocketAddr, raw: &[u8]) -> (u16, Vec<u8>) {
-    let mut s = TcpStream::connect(addr).await.unwrap();
-    s.write_all(raw).await.unwrap();
-    let mut out = Vec::new();
-    s.read_to_end(&mut out).await.unwrap();
-    let end = out
-        .windows(4)
-        .position(|w| w == b"\r\n\r\n")
-        .expect("a response head");
-    let head = String::from_utf8(out[..end].to_vec()).unwrap();
-    let status = head.split(' ').nth(1).unwrap().parse().unwrap();
-    (status, out[end + 4..].to_vec())
-}
-
-async fn get(addr: SocketAddr, path: &str) -> u16 {
-    let req = format!("GET {path} HTTP/1.1\r\nHost: localhost\r\n\r\n");
-    request(addr, req.as_bytes()).await.0
-}
+const MAX_SAMPLES: u32 = 3;
+const SOON: Duration = Duration::from_secs(5);
 
 fn name(s: &str) -> Name {
     Name::new(s).unwrap()
@@ -52,6 +36,22 @@ fn start_cam() -> Camera {
     }
 }
 
+fn settings() -> RenderSettings {
+    RenderSettings {
+        shade: true,
+        shadows: false,
+        reflection_depth: 0,
+        light_dir: [0.3, 1.0, 0.2],
+        reflective: Reflective::None,
+        reflectance: 0.5,
+        voxel_colors: false,
+        want_depth: false,
+        want_prim_ids: false,
+    }
+}
+
+type Socket = tokio_tungstenite::WebSocketStream<tokio_tungstenite::MaybeTlsStream<TcpStream>>;
+
 struct Fixture {
     _net: InProcNet,
     assigner: Mailbox,
@@ -59,17 +59,22 @@ struct Fixture {
     control: Mailbox,
     /// Sends the tiles (only a client may).
     client: Mailbox,
-    web: SocketAddr,
+    ws: Socket,
     display: JoinHandle<Result<DisplaySummary, ActorError>>,
 }
 
-/// A display with an interactive viewer on a port the system picks (bound
-/// before the display runs, so no other test can take it in between).
-async fn start(stop: impl std::future::Future<Output = ()> + Send + 'static) -> Fixture {
-    let (viewer, moves) = WebViewer::start_interactive("127.0.0.1:0".parse().unwrap())
+async fn start() -> Fixture {
+    let opts = WebOptions {
+        interactive: true,
+        token: None,
+    };
+    let (viewer, inputs) = WebViewer::start("127.0.0.1:0".parse().unwrap(), opts)
         .await
         .unwrap();
-    let web = viewer.local_addr();
+    let url = viewer
+        .url()
+        .replace("http://", "ws://")
+        .replace("/?", "/ws?");
     let net = InProcNet::new();
     let sched = net.add_node(name("scheduler"), Role::Scheduler).unwrap();
     let disp = net.add_node(name("display"), Role::Display).unwrap();
@@ -81,66 +86,68 @@ async fn start(stop: impl std::future::Future<Output = ()> + Send + 'static) -> 
         .mailbox(name(names::CLIENT), 4)
         .unwrap();
     let mb = disp.mailbox(name(names::DISPLAY), 64).unwrap();
+    let web = viewer.local_addr();
     let opts = DisplayOptions {
         assigner: names::assigner(),
         scheduler: names::scheduler(),
         width: W,
         height: H,
+        settings: settings(),
+        max_samples: MAX_SAMPLES,
+        web_token: None,
         cameras: vec![start_cam()],
         interactive: true,
-        frames_ahead: 1,
+        frames_ahead: 2,
         output: None,
         save_frames: false,
         keep_frames: false,
         web: Some(web),
         samples: 1,
     };
+    let display = tokio::spawn(run_display_with_viewer(
+        mb,
+        opts,
+        Some((viewer, inputs)),
+        std::future::pending(),
+    ));
+    let (ws, _) = tokio_tungstenite::connect_async(url).await.unwrap();
     Fixture {
         _net: net,
         assigner,
         control,
         client,
-        web,
-        display: tokio::spawn(run_display_with_viewer(
-            mb,
-            opts,
-            Some((viewer, Some(moves))),
-            stop,
-        )),
+        ws,
+        display,
     }
 }
 
 impl Fixture {
-    async fn camera(&mut self) -> (u64, Camera) {
+    async fn camera(&mut self) -> CameraUpdate {
         loop {
             if let Delivery::Message {
                 msg: Message::CameraUpdate(c),
                 ..
             } = self.assigner.recv().await.expect("bus")
             {
-                return (c.seq, c.camera);
+                return c;
             }
         }
     }
 
-    async fn camera_within(&mut self, t: Duration) -> Option<(u64, Camera)> {
+    async fn camera_within(&mut self, t: Duration) -> Option<CameraUpdate> {
         tokio::time::timeout(t, self.camera()).await.ok()
     }
 
-    /// Sends the whole frame as one tile, then its FrameDone.
-    async fn complete(&mut self, frame: u64) {
-        let rgba: Vec<[u8; 4]> = (0..W * H).map(|i| [i as u8, frame as u8, 0, 255]).collect();
+    /// Sends frame `frame` of `w` × `h` as one tile (every pixel `v`), with
+    /// ids and depths when asked, then its FrameDone.
+    async fn complete(&mut self, frame: u64, (w, h): (u32, u32), v: u8, ids: bool) {
+        let n = (w * h) as usize;
         let tile = TileDone {
             frame,
-            tile: TileRect {
-                x: 0,
-                y: 0,
-                w: W,
-                h: H,
-            },
-            pixels: TilePixels::encode(&rgba),
-            depth: None,
-            prim_ids: None,
+            tile: TileRect { x: 0, y: 0, w, h },
+            pixels: TilePixels::Rgba(Blob(vec![v; n * 4])),
+            depth: ids.then(|| PackedF32(vec![7.5; n])),
+            prim_ids: ids.then(|| PackedU32((0..n as u32).collect())),
             stats: TileStats::default(),
             hits: Default::default(),
         };
@@ -156,84 +163,156 @@ impl Fixture {
             .unwrap();
     }
 
-    /// Sends a move over HTTP and gives the display time to take it.
-    async fn user(&self, query: &str) {
-        assert_eq!(
-            get(self.web, &format!("/move?{query}")).await,
-            204,
-            "{query}"
-        );
-        tokio::time::sleep(Duration::from_millis(100)).await;
+    async fn input(&mut self, json: &str) {
+        self.ws.send(Ws::Text(json.into())).await.unwrap();
+    }
+
+    /// The next message on the socket: text as JSON, or a frame's header.
+    async fn next(&mut self) -> serde_json::Value {
+        let m = tokio::time::timeout(SOON, self.ws.next())
+            .await
+            .expect("a message in time")
+            .expect("the socket open")
+            .unwrap();
+        match m {
+            Ws::Text(t) => serde_json::from_str(&t).unwrap(),
+            Ws::Binary(b) => {
+                let n = u32::from_le_bytes(b[..4].try_into().unwrap()) as usize;
+                let mut head: serde_json::Value = serde_json::from_slice(&b[4..4 + n]).unwrap();
+                head["type"] = "frame".into();
+                if head["format"] == "png" {
+                    let (_, _, px) = dray_trace::image::decode_png(&b[4 + n..]).unwrap();
+                    head["pixel"] = px[0][0].into();
+                }
+                head
+            }
+            other => panic!("unexpected {other:?}"),
+        }
+    }
+
+    async fn next_of(&mut self, kind: &str) -> serde_json::Value {
+        loop {
+            let m = self.next().await;
+            if m["type"] == kind {
+                return m;
+            }
+        }
     }
 }
-
-fn sub(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-
-fn close(a: [f32; 3], b: [f32; 3]) -> bool {
-    sub(a, b).iter().all(|x| x.abs() < 1e-4)
-}
-
-const SOON: Duration = Duration::from_secs(5);
 
 #[tokio::test]
-async fn display_interactive_follows_moves_from_the_web_viewer() {
-    let mut f = start(std::future::pending()).await;
-    let c0 = start_cam();
-    let step = moves::step_for(&c0);
-    let (seq, cam) = f.camera_within(SOON).await.expect("first camera");
-    assert_eq!((seq, cam), (0, c0), "starts from the config's camera");
+async fn display_interactive_refines_a_still_view_and_a_move_starts_again() {
+    let mut f = start().await;
+    let hello = f.next_of("status").await;
+    assert_eq!(hello["max_samples"], MAX_SAMPLES);
+    assert_eq!(hello["choices"]["width"], W);
 
-    // `w`: the next frame's eye is one step forward along the view.
-    f.user("k=w").await;
-    f.complete(0).await;
-    let (seq, c1) = f.camera_within(SOON).await.expect("camera 1");
-    assert_eq!(seq, 1);
-    assert!(close(c1.eye, [0.0, 1.0, -10.0 + step]), "{:?}", c1.eye);
-    assert!(close(c1.look, [0.0, 1.0, step]), "{:?}", c1.look);
-
-    // `q`: the look point turns left about the up vector, the eye stays.
-    f.user("k=q").await;
-    f.complete(1).await;
-    let (seq, c2) = f.camera_within(SOON).await.expect("camera 2");
-    assert_eq!(seq, 2);
-    assert!(close(c2.eye, c1.eye));
-    let d = sub(c2.look, c2.eye);
-    let a = moves::TURN_DEG.to_radians();
-    // Looking along +z with up +y, left is +x.
-    assert!(close(d, [10.0 * a.sin(), 0.0, 10.0 * a.cos()]), "{d:?}");
-
-    // No more moves: the same camera a few more times, then the display
-    // waits for a move.
-    let mut seq = 2;
-    for _ in 1..IDLE_FRAMES {
-        f.complete(seq).await;
-        let (s, c) = f.camera_within(SOON).await.expect("idle refresh");
-        assert_eq!((s, c), (seq + 1, c2));
-        seq = s;
-    }
-    f.complete(seq).await;
+    // Samples 0, 1, 2 of the first camera, the first saying its format.
+    let c0 = f.camera_within(SOON).await.expect("first camera");
+    assert_eq!((c0.seq, c0.sample, c0.camera), (0, 0, start_cam()));
+    let format = c0.format.clone().expect("the first frame's format");
+    assert_eq!((format.width, format.height), (W, H));
+    let c1 = f.camera_within(SOON).await.expect("second camera");
     assert_eq!(
-        f.camera_within(Duration::from_millis(500)).await,
-        None,
-        "an idle viewer leaves the cluster idle"
+        (c1.seq, c1.sample, c1.camera, c1.format),
+        (1, 1, start_cam(), None)
     );
-    // A move wakes it up: `d` strafes right (-x here).
-    let resumed = std::time::Instant::now();
-    f.user("k=d").await;
-    let (s, c) = f.camera_within(SOON).await.expect("camera after the pause");
-    assert_eq!(s, seq + 1);
-    assert!(!close(c.look, c2.look) && (c.eye[1] - c2.eye[1]).abs() < 1e-4);
-    let moved = sub(c.eye, c2.eye);
-    let len = moved.iter().map(|x| x * x).sum::<f32>().sqrt();
-    assert!((len - step).abs() < 1e-4 && moved[0] < 0.0, "{moved:?}");
+    assert!(
+        f.camera_within(Duration::from_millis(200)).await.is_none(),
+        "refining samples go one at a time"
+    );
+    // Pixels 30, 60, 90: the page sees their running mean.
+    f.complete(0, (W, H), 30, false).await;
+    let c2 = f.camera_within(SOON).await.expect("third camera");
+    assert_eq!((c2.seq, c2.sample), (2, 2));
+    f.complete(1, (W, H), 60, false).await;
+    f.complete(2, (W, H), 90, false).await;
+    let mut last = serde_json::Value::Null;
+    while last["samples"] != MAX_SAMPLES {
+        last = f.next_of("frame").await;
+    }
+    assert_eq!(last["still"], true);
+    assert_eq!(
+        last["pixel"],
+        serde_json::json!([60, 60, 60, 255]),
+        "the mean of 30, 60, 90"
+    );
+    assert!(
+        f.camera_within(Duration::from_millis(300)).await.is_none(),
+        "a refined view leaves the cluster idle"
+    );
 
-    f.complete(s).await;
-    let seq = s;
-    tokio::time::sleep(Duration::from_millis(100)).await;
+    // A move: sample 0 of the moved camera.
+    f.input(r#"{"fly":{"forward":1.5}}"#).await;
+    let m = f
+        .camera_within(SOON)
+        .await
+        .expect("a camera after the move");
+    assert_eq!((m.seq, m.sample, m.format), (3, 0, None));
+    assert!(
+        (m.camera.eye[2] - (-8.5)).abs() < 1e-4,
+        "{:?}",
+        m.camera.eye
+    );
+    f.complete(3, (W, H), 200, false).await;
+    let shown = f.next_of("frame").await;
+    assert_eq!(
+        (shown["samples"].as_u64(), shown["still"].as_bool()),
+        (Some(1), Some(false))
+    );
 
-    // A Shutdown ends the run, with the frames shown so far.
+    // Half the resolution: the format says so, and its tiles fit.
+    f.input(r#"{"set":{"scale":0.5,"shadows":true}}"#).await;
+    let status = f.next_of("status").await;
+    assert_eq!(
+        (
+            status["choices"]["width"].as_u64(),
+            status["choices"]["shadows"].as_bool()
+        ),
+        (Some(4), Some(true))
+    );
+    let mut c = f
+        .camera_within(SOON)
+        .await
+        .expect("a camera after the change");
+    while c.format.is_none() {
+        f.complete(c.seq, (W, H), 0, false).await;
+        c = f.camera_within(SOON).await.expect("the changed format");
+    }
+    let fmt = c.format.clone().unwrap();
+    assert_eq!(
+        (fmt.width, fmt.height, fmt.settings.shadows, c.sample),
+        (4, 2, true, 0)
+    );
+    f.complete(c.seq, (4, 2), 10, false).await;
+    let shown = loop {
+        let s = f.next_of("frame").await;
+        if s["width"] == 4 {
+            break s;
+        }
+    };
+    assert_eq!(shown["height"], 2);
+
+    // A pick rides on the next frame, with ids and depths, and is answered.
+    f.input(r#"{"pick":{"x":0.6,"y":0.9,"pivot":true}}"#).await;
+    let p = loop {
+        let c = f.camera_within(SOON).await.expect("the pick's frame");
+        let wants = c
+            .format
+            .as_ref()
+            .is_some_and(|f| f.settings.want_prim_ids && f.settings.want_depth);
+        f.complete(c.seq, (4, 2), 10, wants).await;
+        if wants {
+            break f.next_of("picked").await;
+        }
+    };
+    // Pixel (2, 1) of 4 × 2: id 6, at the depth sent.
+    assert_eq!(
+        (p["triangle"].as_u64(), p["distance"].as_f64()),
+        (Some(6), Some(7.5))
+    );
+
+    // A Shutdown ends the run; the page hears why.
     f.control
         .send(
             &names::display(),
@@ -243,97 +322,45 @@ async fn display_interactive_follows_moves_from_the_web_viewer() {
         )
         .await
         .unwrap();
-    let s = f.display.await.unwrap().unwrap();
-    let since_move = resumed.elapsed().as_secs_f64() * 1e3;
-    assert_eq!(s.frames.len() as u64, seq + 1);
-    assert_eq!(s.frames_requested, s.frames.len());
-    assert!(s.complete && s.stopped_early.is_none());
-    // The idle pause (500 ms and more before the move) is not frame
-    // time: the last frame's clock started after the move.
-    let last = s.frames.last().unwrap();
-    assert!(
-        last.frame_ms <= since_move,
-        "{} ms, {since_move} ms since the move",
-        last.frame_ms
-    );
-    // The viewer stopped with the display.
-    tokio::time::sleep(Duration::from_millis(100)).await;
-    assert!(TcpStream::connect(f.web).await.is_err());
-}
-
-#[tokio::test]
-async fn display_interactive_ends_on_the_stop_future() {
-    let (tx, rx) = tokio::sync::oneshot::channel::<()>();
-    let mut f = start(async {
-        let _ = rx.await;
-    })
-    .await;
-    f.camera_within(SOON).await.expect("first camera");
-    f.complete(0).await;
-    f.camera_within(SOON).await.expect("second camera");
-    tokio::time::sleep(Duration::from_millis(100)).await;
-    tx.send(()).unwrap();
+    let ended = loop {
+        let s = f.next_of("status").await;
+        if !s["ended"].is_null() {
+            break s;
+        }
+    };
+    assert_eq!(ended["ended"], "shutdown: done");
     let s = tokio::time::timeout(SOON, f.display)
         .await
-        .expect("stops")
+        .unwrap()
         .unwrap()
         .unwrap();
-    assert_eq!(s.frames.len(), 1);
-    assert!(s.complete);
+    assert!(s.complete && s.stopped_early.is_none());
+    assert!(s.frames.len() >= 6);
 }
 
 #[tokio::test]
-async fn display_web_viewer_refuses_bad_moves_and_keeps_serving() {
-    let (v, mut rx) = WebViewer::start_interactive("127.0.0.1:0".parse().unwrap())
-        .await
-        .unwrap();
-    let addr = v.local_addr();
+async fn display_interactive_ignores_wild_inputs() {
+    let mut f = start().await;
+    f.next_of("status").await;
+    f.camera_within(SOON).await.expect("first camera");
     for bad in [
-        "/move",
-        "/move?",
-        "/move?k=zz",
-        "/move?k=w&k=s",
-        "/move?k=w&x=1",
-        "/move?k=look&dx=nan&dy=0",
-        "/move?k=look&dx=1e30",
-        "/move?k=%77",
+        r#"{"fly":{"forward":1e38,"yaw":1e38}}"#,
+        r#"{"orbit":{"yaw":-1e38,"pitch":1e38}}"#,
+        r#"{"zoom":{"steps":1e30}}"#,
+        r#"{"set":{"scale":3}}"#,
+        r#"{"pick":{"x":-1,"y":2}}"#,
     ] {
-        assert_eq!(get(addr, bad).await, 400, "{bad}");
+        f.input(bad).await;
     }
-    assert_eq!(
-        request(addr, b"HEAD /move?k=w HTTP/1.1\r\n\r\n").await.0,
-        405,
-        "a move is not for HEAD"
-    );
-    assert_eq!(
-        request(addr, b"POST /move HTTP/1.1\r\nContent-Length: 3\r\n\r\nk=w")
-            .await
-            .0,
-        405
-    );
-    assert!(rx.try_recv().is_err(), "nothing taken");
-    assert_eq!(get(addr, "/move?k=w").await, 204);
-    assert_eq!(get(addr, "/move?k=look&dx=3&dy=-2").await, 204);
-    assert_eq!(rx.try_recv().unwrap(), Move::Forward);
-    assert_eq!(rx.try_recv().unwrap(), Move::Drag { dx: 3.0, dy: -2.0 });
-    // A display that does not keep up: refused, not queued without bound.
-    for _ in 0..dray_actors::display::web::MOVE_QUEUE {
-        assert_eq!(get(addr, "/move?k=e").await, 204);
+    let mut last = None;
+    while let Some(c) = f.camera_within(Duration::from_millis(500)).await {
+        assert!(dray_protocol::check_camera(&c.camera).is_ok(), "{c:?}");
+        assert!(c.camera.eye.iter().all(|x| x.abs() < 1e3), "{c:?}");
+        if let Some(fmt) = &c.format {
+            assert_eq!((fmt.width, fmt.height), (W, H), "no such scale");
+        }
+        f.complete(c.seq, (W, H), 1, false).await;
+        last = Some(c);
     }
-    assert_eq!(get(addr, "/move?k=e").await, 503);
-    // The page still comes, with the controls.
-    let (status, page) = request(addr, b"GET / HTTP/1.1\r\n\r\n").await;
-    assert_eq!(status, 200);
-    let page = String::from_utf8(page).unwrap();
-    assert!(page.contains("/move?") && page.contains("/metrics.json"));
-    // The display gone: 503.
-    drop(rx);
-    assert_eq!(get(addr, "/move?k=w").await, 503);
-
-    // A viewer that is not interactive has no /move.
-    let ro = WebViewer::start("127.0.0.1:0".parse().unwrap())
-        .await
-        .unwrap();
-    assert_eq!(get(ro.local_addr(), "/move?k=w").await, 404);
-    assert_eq!(get(ro.local_addr(), "/").await, 200);
+    assert!(last.is_some(), "the display goes on");
 }

@@ -447,11 +447,22 @@ pub struct DisplayConfig {
     /// frame k is not yet complete (double buffering at 2).
     #[serde(default = "default_frames_ahead")]
     pub frames_ahead: u32,
+    /// Interactive: samples per pixel a still view is refined to (each
+    /// frame adds one jittered sample; any move starts again at one).
+    #[serde(default = "default_max_samples")]
+    pub max_samples: u32,
 }
 
 fn default_frames_ahead() -> u32 {
     2
 }
+
+fn default_max_samples() -> u32 {
+    32
+}
+
+/// Most samples per pixel a view is refined to.
+pub const MAX_SAMPLES: u32 = 1024;
 
 /// What a client does when a packet needs a voxel it does not have.
 #[derive(Clone, Copy, Debug, Deserialize, PartialEq, Eq)]
@@ -801,6 +812,12 @@ impl Config {
             return Err(invalid(
                 "display.frames_ahead",
                 format!("{} is not in 1..=16", self.display.frames_ahead),
+            ));
+        }
+        if self.display.max_samples == 0 || self.display.max_samples > MAX_SAMPLES {
+            return Err(invalid(
+                "display.max_samples",
+                format!("{} is not in 1..={MAX_SAMPLES}", self.display.max_samples),
             ));
         }
         let ahead = u64::from(self.display.frames_ahead);

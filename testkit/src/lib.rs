@@ -5,9 +5,13 @@
 //!   way the demo's and the experiments' models are made;
 //! - [`preprocess_into`]: any model file into a database;
 //! - [`real_model`]: a real model shipped in `tests/data/`, decompressed;
-//! - [`free_ports`]: loopback ports for QUIC nodes.
+//! - [`free_ports`]: loopback ports for QUIC nodes;
+//! - [`browser`]: a headless Chromium over WebDriver, and a `dray view`
+//!   process whose viewer it opens.
 //!
 //! Panics on failure: a fixture that cannot be made fails the test.
+
+pub mod browser;
 
 use dray_scene::db::Database;
 use dray_scene::generate::PlantParams;

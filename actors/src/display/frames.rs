@@ -2,9 +2,10 @@
 //!
 //! Only the frames whose camera was sent and that are not yet handed out
 //! are buffered (at most `frames_ahead` of them), so memory is bounded by
-//! `(frames_ahead + MAX_SPARE_IMAGES) × width × height` pixels whatever the
-//! peers send (a few images of frames shown are kept to assemble later
-//! frames in).
+//! `(frames_ahead + MAX_SPARE_IMAGES) × width × height` pixels (of the
+//! largest size asked for) whatever the peers send (a few images of frames
+//! shown are kept to assemble later frames in). Each frame has its own
+//! size: an interactive viewer changes the resolution between frames.
 
 use dray_protocol::{FrameStats, TileDone};
 use std::collections::BTreeMap;
@@ -15,6 +16,9 @@ use tokio::time::Instant;
 pub struct FrameImage {
     /// Frame number.
     pub frame: u64,
+    /// Its size in pixels.
+    pub width: u32,
+    pub height: u32,
     /// RGBA8 pixels, rows top to bottom.
     pub rgba: Vec<[u8; 4]>,
     /// Per-pixel hit distance (+inf on a miss) when the tiles carried it.
@@ -100,6 +104,8 @@ const MAX_SPARE_IMAGES: usize = 4;
 #[derive(Debug)]
 pub(crate) struct PendingFrame {
     pub frame: u64,
+    pub width: u32,
+    pub height: u32,
     /// Pixels not covered yet may hold an older frame's (a reused buffer).
     pub rgba: Vec<[u8; 4]>,
     pub depth: Option<Vec<f32>>,
@@ -116,10 +122,12 @@ pub(crate) struct PendingFrame {
 }
 
 impl PendingFrame {
-    fn new(frame: u64, rgba: Vec<[u8; 4]>) -> PendingFrame {
+    fn new(frame: u64, (width, height): (u32, u32), rgba: Vec<[u8; 4]>) -> PendingFrame {
         let pixels = rgba.len();
         PendingFrame {
             frame,
+            width,
+            height,
             rgba,
             depth: None,
             primid: None,
@@ -146,6 +154,8 @@ impl PendingFrame {
         (
             FrameImage {
                 frame: self.frame,
+                width: self.width,
+                height: self.height,
                 rgba: self.rgba,
                 depth: self.depth,
                 primid: self.primid,
@@ -169,8 +179,6 @@ pub(crate) struct ReadyFrame {
 /// The outstanding frames.
 #[derive(Debug)]
 pub(crate) struct Frames {
-    width: u32,
-    height: u32,
     pending: BTreeMap<u64, PendingFrame>,
     /// The next frame to hand out, in order.
     next_out: u64,
@@ -182,10 +190,8 @@ pub(crate) struct Frames {
 }
 
 impl Frames {
-    pub fn new(width: u32, height: u32) -> Frames {
+    pub fn new() -> Frames {
         Frames {
-            width,
-            height,
             pending: BTreeMap::new(),
             next_out: 0,
             spare: Vec::new(),
@@ -193,25 +199,28 @@ impl Frames {
         }
     }
 
-    fn pixels(&self) -> usize {
-        self.width as usize * self.height as usize
-    }
-
-    /// Starts buffering `frame` (its camera was just sent).
-    pub fn open(&mut self, frame: u64) {
+    /// Starts buffering `frame` (its camera was just sent), of `width` ×
+    /// `height` pixels.
+    pub fn open(&mut self, frame: u64, width: u32, height: u32) {
         if self.pending.contains_key(&frame) {
             return;
         }
-        let n = self.pixels();
-        let rgba = self.spare.pop().unwrap_or_else(|| vec![MISSING; n]);
-        self.pending.insert(frame, PendingFrame::new(frame, rgba));
+        let n = width as usize * height as usize;
+        let rgba = match self.spare.iter().position(|s| s.len() == n) {
+            Some(i) => self.spare.swap_remove(i),
+            None => vec![MISSING; n],
+        };
+        self.pending
+            .insert(frame, PendingFrame::new(frame, (width, height), rgba));
     }
 
-    /// Takes back a shown frame's pixels for a later frame.
+    /// Takes back a shown frame's pixels for a later frame (the oldest
+    /// spare goes when there are too many: sizes change rarely).
     pub fn recycle(&mut self, rgba: Vec<[u8; 4]>) {
-        if rgba.len() == self.pixels() && self.spare.len() < MAX_SPARE_IMAGES {
-            self.spare.push(rgba);
+        if self.spare.len() >= MAX_SPARE_IMAGES {
+            self.spare.remove(0);
         }
+        self.spare.push(rgba);
     }
 
     /// Frames opened and not handed out yet.
@@ -233,11 +242,11 @@ impl Frames {
     /// Puts a tile's pixels in place (first wins per pixel).
     /// Returns how many new pixels it brought.
     pub fn add_tile(&mut self, t: &TileDone, now: Instant) -> Result<usize, TileRejected> {
-        let (w, h) = (self.width, self.height);
         let f = self
             .pending
             .get_mut(&t.frame)
             .ok_or(TileRejected::UnknownFrame(t.frame))?;
+        let (w, h) = (f.width, f.height);
         let r = t.tile;
         if r.w == 0
             || r.h == 0
@@ -392,9 +401,9 @@ mod tests {
     #[test]
     fn in_order_first_wins() {
         let now = Instant::now();
-        let mut f = Frames::new(4, 2);
-        f.open(0);
-        f.open(1);
+        let mut f = Frames::new();
+        f.open(0, 4, 2);
+        f.open(1, 4, 2);
         assert_eq!(f.add_tile(&tile(1, 0, 0, 4, 2, 9), now), Ok(8));
         assert!(f.frame_done(1, FrameStats::default(), now));
         assert!(f.pop_ready().is_none(), "frame 1 waits for frame 0");
@@ -417,8 +426,8 @@ mod tests {
     #[test]
     fn a_tile_over_part_of_a_row_brings_only_its_new_pixels() {
         let now = Instant::now();
-        let mut f = Frames::new(4, 2);
-        f.open(0);
+        let mut f = Frames::new();
+        f.open(0, 4, 2);
         let mut a = tile(0, 0, 0, 2, 1, 1);
         a.depth = Some(dray_protocol::PackedF32(vec![1.0; 2]));
         a.prim_ids = Some(dray_protocol::PackedU32(vec![10; 2]));
@@ -443,14 +452,14 @@ mod tests {
     #[test]
     fn a_reused_image_shows_none_of_its_old_pixels() {
         let now = Instant::now();
-        let mut f = Frames::new(4, 2);
-        f.open(0);
+        let mut f = Frames::new();
+        f.open(0, 4, 2);
         assert_eq!(f.add_tile(&tile(0, 0, 0, 4, 2, 9), now), Ok(8));
         assert!(f.frame_done(0, FrameStats::default(), now));
         let shown = f.pop_ready().unwrap().image;
         assert_eq!(shown.rgba, [[9; 4]; 8]);
         f.recycle(shown.rgba);
-        f.open(1);
+        f.open(1, 4, 2);
         assert_eq!(f.add_tile(&tile(1, 1, 0, 2, 1, 5), now), Ok(2));
         assert!(f.frame_done(1, FrameStats::default(), now));
         assert!(f.pop_ready().is_none(), "6 pixels missing");
@@ -462,7 +471,7 @@ mod tests {
         assert_eq!(forced.image.rgba, want);
         // An image of another size is not kept.
         f.recycle(vec![[1; 4]; 3]);
-        f.open(2);
+        f.open(2, 4, 2);
         assert_eq!(f.pending[&2].rgba, [MISSING; 8]);
     }
 

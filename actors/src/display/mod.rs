@@ -14,13 +14,13 @@
 //! is the mean of its samples (`samples.rs`); every frame still gets its
 //! metrics row.
 //!
-//! In interactive mode ([`DisplayOptions::interactive`]) the camera comes
-//! from a user instead: the display starts from the first camera and
-//! applies the [`Move`]s the web viewer takes on `/move` ([`moves`] has
-//! the keys and step sizes). It keeps `frames_ahead` frames in flight with
-//! the current camera, so the image refreshes continuously and a move
-//! shows in the next frame sent; after [`IDLE_FRAMES`] frames without a
-//! move it stops sending until the next move, so an idle viewer leaves the
+//! In interactive mode ([`DisplayOptions::interactive`]) a person at the
+//! web viewer flies the camera instead: the display starts from the first
+//! camera and applies the [`ViewInput`]s the page sends ([`view`] has the
+//! controls). While the view changes it keeps `frames_ahead` frames in
+//! flight; once it stands still, each next frame is another jittered
+//! sample of the same image, accumulated here, up to `max_samples`; then
+//! it sends nothing until the next input, so an idle viewer leaves the
 //! cluster idle. It runs until a Shutdown (or the stop future of
 //! [`run_display_until`], Ctrl-C in the node and `dray sim`), which is its
 //! normal end: the summary then counts as complete.
@@ -52,20 +52,20 @@
 
 mod frames;
 mod metrics;
-pub mod moves;
 pub mod path;
 mod samples;
 mod state;
+pub mod view;
 pub mod web;
 
 pub use frames::{FrameImage, TileRejected};
 pub use metrics::{DisplaySummary, FrameMetrics, CSV_HEADER};
-pub use moves::Move;
 pub use path::{CameraPath, Keyframe, PathError};
-pub use web::WebViewer;
+pub use view::{Picked, View, ViewInput};
+pub use web::{ShownFrame, WebOptions, WebViewer};
 
 use crate::ActorError;
-use dray_protocol::{Address, Message};
+use dray_protocol::{Address, Message, RenderSettings};
 use dray_runtime::{Delivery, LinkMeter, Mailbox, SendError};
 use metrics::CsvLog;
 use state::{Display, End, Out};
@@ -84,11 +84,13 @@ pub const MISSING_PIXELS_GRACE: Duration = Duration::from_secs(10);
 /// until the next try.
 pub const SEND_RETRY: Duration = Duration::from_millis(200);
 
-/// Interactive mode: frames rendered with an unchanged camera (from the
-/// start or the last move) before the display waits for the next move.
-/// A few refreshes let a progressive or still-loading view settle (voxels
-/// that missed the cache in the first frame are there for the next).
-pub const IDLE_FRAMES: u64 = 4;
+/// Interactive mode: samples per pixel a still view is refined to, unless
+/// the options say otherwise; about a second of frames at this machine's
+/// rates for a small cluster.
+pub const DEFAULT_MAX_SAMPLES: u32 = 32;
+
+/// How long the viewer's pages have to hear that the run ended.
+const ENDED_NOTICE: Duration = Duration::from_millis(300);
 
 /// What the display does.
 #[derive(Clone, Debug)]
@@ -98,10 +100,17 @@ pub struct DisplayOptions {
     /// The scheduler, which hears from here of each tile whose pixels
     /// arrived.
     pub scheduler: Address,
-    /// Image width.
+    /// Image width (interactive: at the 1× scale).
     pub width: u32,
     /// Image height.
     pub height: u32,
+    /// Shading, as the assigner has it from the config (interactive: what
+    /// the viewer's toggles start from).
+    pub settings: RenderSettings,
+    /// Interactive: samples per pixel a still view is refined to.
+    pub max_samples: u32,
+    /// The web viewer's token; `None`: a fresh random one.
+    pub web_token: Option<String>,
     /// One camera per frame, in order; interactive: the first is where
     /// the user starts, the others are unused.
     pub cameras: Vec<dray_protocol::Camera>,
@@ -277,29 +286,30 @@ pub async fn run_display_until(
         source: e,
     };
     let viewer = match opts.web {
-        Some(addr) if opts.interactive => {
-            let (v, rx) = WebViewer::start_interactive(addr)
-                .await
-                .map_err(|e| web_err(addr, e))?;
-            Some((v, Some(rx)))
+        Some(addr) => {
+            let web = WebOptions {
+                interactive: opts.interactive,
+                token: opts.web_token.clone(),
+            };
+            Some(
+                WebViewer::start(addr, web)
+                    .await
+                    .map_err(|e| web_err(addr, e))?,
+            )
         }
-        Some(addr) => Some((
-            WebViewer::start(addr).await.map_err(|e| web_err(addr, e))?,
-            None,
-        )),
         None => None,
     };
     run_display_with_viewer(mb, opts, viewer, stop).await
 }
 
 /// [`run_display_until`] serving a web viewer already listening (started
-/// with [`WebViewer::start`], or [`WebViewer::start_interactive`] and its
-/// moves): a caller that lets the system pick the port knows it before the
-/// display runs. `opts.web` is then only checked to be set.
+/// with [`WebViewer::start`], interactive with its inputs): a caller that
+/// lets the system pick the port knows it before the display runs.
+/// `opts.web` is then only checked to be set.
 pub async fn run_display_with_viewer(
     mut mb: Mailbox,
     opts: DisplayOptions,
-    viewer: Option<(WebViewer, Option<tokio::sync::mpsc::Receiver<Move>>)>,
+    viewer: Option<(WebViewer, Option<tokio::sync::mpsc::Receiver<ViewInput>>)>,
     stop: impl Future<Output = ()>,
 ) -> Result<DisplaySummary, ActorError> {
     tokio::pin!(stop);
@@ -309,11 +319,11 @@ pub async fn run_display_with_viewer(
         .as_deref()
         .map(|dir| Output::create(dir, opts.save_frames))
         .transpose()?;
-    let (viewer, mut moves) = match viewer {
-        Some((v, moves)) => (Some(v), moves),
+    let (viewer, mut inputs) = match viewer {
+        Some((v, inputs)) => (Some(v), inputs),
         None => (None, None),
     };
-    if opts.interactive && moves.is_none() {
+    if opts.interactive && inputs.is_none() {
         return Err(ActorError::Peer {
             actor: ACTOR.into(),
             message: "interactive mode needs an interactive web viewer".into(),
@@ -323,12 +333,18 @@ pub async fn run_display_with_viewer(
     let mut sink = Sink {
         assigner: opts.assigner.clone(),
         scheduler: opts.scheduler.clone(),
-        width: opts.width,
-        height: opts.height,
         output,
         viewer,
     };
     let mut d = Display::new(opts, Box::new(move || links.take().display));
+    if let Some(v) = &sink.viewer {
+        let view = d.view();
+        v.set_status(|s| {
+            s.choices = view.map(|v| v.choices());
+            s.home_distance = view.map_or(1.0, |v| v.home_distance());
+            s.max_samples = view.map_or(1, |v| v.max_samples());
+        });
+    }
     if d.opts().cameras.is_empty() {
         return Ok(d.finish(None));
     }
@@ -391,16 +407,16 @@ pub async fn run_display_with_viewer(
                 d.advance(&mut out);
             }
             _ = &mut stop => d.interrupted(&mut out),
-            m = next_move(&mut moves) => match m {
-                Some(m) => {
-                    // Every move already waiting goes into the same camera.
-                    let mut all = vec![m];
-                    while let Some(m) = moves.as_mut().and_then(|rx| rx.try_recv().ok()) {
-                        all.push(m);
+            i = next_input(&mut inputs) => match i {
+                Some(i) => {
+                    // Every input already waiting goes into the same frame.
+                    let mut all = vec![i];
+                    while let Some(i) = inputs.as_mut().and_then(|rx| rx.try_recv().ok()) {
+                        all.push(i);
                     }
-                    d.moved(&all, &mut out);
+                    d.input(&all, &mut out);
                 }
-                None => moves = None,
+                None => inputs = None,
             },
             _ = crate::sleep_until_opt(deadline) => d.tick(Instant::now(), &mut out),
         }
@@ -412,8 +428,6 @@ pub async fn run_display_with_viewer(
 struct Sink {
     assigner: Address,
     scheduler: Address,
-    width: u32,
-    height: u32,
     output: Option<Output>,
     viewer: Option<WebViewer>,
 }
@@ -460,12 +474,27 @@ impl Sink {
                     Out::Pong { to, ping } => {
                         let _ = mb.send(&to, Message::Pong(ping)).await;
                     }
-                    Out::Show { image, metrics } => {
-                        if let Some(image) = self.show(image, &metrics, d.keeps_frames()).await? {
+                    Out::Show {
+                        image,
+                        metrics,
+                        shown,
+                    } => {
+                        let keep = d.keeps_frames();
+                        if let Some(image) = self.show(image, &metrics, shown, keep).await? {
                             d.shown(image);
                         }
                     }
                     Out::Metrics(metrics) => self.log(&metrics)?,
+                    Out::Choices(c) => {
+                        if let Some(v) = &self.viewer {
+                            v.set_status(|s| s.choices = Some(c));
+                        }
+                    }
+                    Out::Picked(p) => {
+                        if let Some(v) = &self.viewer {
+                            v.picked(p);
+                        }
+                    }
                     Out::End(end) => return Ok(Some(end)),
                 }
             }
@@ -480,11 +509,18 @@ impl Sink {
         &mut self,
         image: FrameImage,
         metrics: &FrameMetrics,
+        shown: state::Shown,
         keep: bool,
     ) -> Result<Option<FrameImage>, ActorError> {
-        let (w, h) = (self.width, self.height);
+        let (w, h) = (image.width, image.height);
         if let Some(v) = &self.viewer {
-            v.publish(w, h, &image, metrics);
+            v.publish(ShownFrame::new(
+                image.frame,
+                (w, h),
+                std::sync::Arc::new(image.rgba.clone()),
+                (shown.samples, shown.view, shown.still),
+                metrics.clone(),
+            ));
         }
         let Some(out) = &mut self.output else {
             return Ok(Some(image));
@@ -515,6 +551,14 @@ impl Sink {
     /// Ends the run: waits for the frame files (a failure only fails a
     /// complete run; a stopped one is ending anyway) and sums it up.
     async fn end(&mut self, d: Display, end: End) -> Result<DisplaySummary, ActorError> {
+        if let Some(v) = &self.viewer {
+            let why = match &end {
+                End::Complete => "every frame is shown".to_string(),
+                End::Stopped(why) | End::Failed(why) => why.clone(),
+            };
+            v.set_status(|s| s.ended = Some(why));
+            tokio::time::sleep(ENDED_NOTICE).await;
+        }
         match end {
             End::Complete => {
                 if let Some(out) = &mut self.output {
@@ -546,8 +590,8 @@ impl Sink {
     }
 }
 
-/// The next move; never when there is no viewer taking them.
-async fn next_move(rx: &mut Option<tokio::sync::mpsc::Receiver<Move>>) -> Option<Move> {
+/// The next input; never when there is no viewer taking them.
+async fn next_input(rx: &mut Option<tokio::sync::mpsc::Receiver<ViewInput>>) -> Option<ViewInput> {
     match rx {
         Some(rx) => rx.recv().await,
         None => std::future::pending().await,

@@ -79,6 +79,8 @@ impl Samples {
         }
         Added::Camera(FrameImage {
             frame: camera,
+            width: w,
+            height: h,
             rgba: acc.image(),
             depth: self.depth.take(),
             primid: self.primid.take(),
@@ -93,6 +95,8 @@ mod tests {
     fn frame(frame: u64, v: u8) -> FrameImage {
         FrameImage {
             frame,
+            width: 3,
+            height: 2,
             rgba: vec![[v, v / 2, 255 - v, 255]; 6],
             depth: Some(vec![frame as f32; 6]),
             primid: None,

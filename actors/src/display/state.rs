@@ -6,13 +6,15 @@
 
 use super::frames::{Frames, ReadyFrame};
 use super::samples::{Added, Samples};
+use super::view::{Choices, Picked, View, ViewInput};
 use super::{
-    moves, DisplayOptions, DisplaySummary, FrameImage, FrameMetrics, Move, IDLE_FRAMES,
-    MISSING_PIXELS_GRACE, SEND_RETRY,
+    DisplayOptions, DisplaySummary, FrameImage, FrameMetrics, MISSING_PIXELS_GRACE, SEND_RETRY,
 };
 use dray_protocol::{
-    Address, Camera, CameraUpdate, FrameDone, Ping, TileDone, TileReport, VoxelLost,
+    Address, Camera, CameraUpdate, FrameDone, FrameFormat, Ping, TileDone, TileReport, VoxelLost,
 };
+use dray_trace::image::Accumulator;
+use std::collections::BTreeMap;
 use std::time::Duration;
 use tokio::time::Instant;
 use tracing::{debug, info, warn};
@@ -33,10 +35,15 @@ pub(super) enum Out {
     Show {
         image: FrameImage,
         metrics: FrameMetrics,
+        shown: Shown,
     },
     /// A frame that added a sample to a camera whose image is not
     /// complete yet: only its metrics row.
     Metrics(FrameMetrics),
+    /// Interactive: the view's choices changed (for the viewer's page).
+    Choices(Choices),
+    /// Interactive: a pick's answer.
+    Picked(Picked),
     /// The run is over; nothing follows.
     End(End),
 }
@@ -50,6 +57,36 @@ pub(super) enum End {
     Stopped(String),
     /// The run cannot go on: the error's message.
     Failed(String),
+}
+
+/// What a shown frame is, besides its pixels.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(super) struct Shown {
+    /// Samples per pixel in the image.
+    pub samples: u32,
+    /// The interactive view it shows (0 on a camera path).
+    pub view: u64,
+    /// No frame of this view follows for now: the view is refined (or the
+    /// path ends).
+    pub still: bool,
+}
+
+/// A frame asked for, until it is shown.
+#[derive(Clone, Debug)]
+struct Asked {
+    camera: Camera,
+    width: u32,
+    height: u32,
+    view: u64,
+    sample: u32,
+    pick: bool,
+}
+
+/// The samples of one view added up so far.
+struct Accumulation {
+    view: u64,
+    size: (u32, u32),
+    acc: Accumulator,
 }
 
 /// The display's own link since the last frame shown, in bytes.
@@ -73,12 +110,17 @@ pub(super) struct Display {
     last_shown: Option<Instant>,
     /// When to try sending cameras again after a failed send.
     retry_at: Option<Instant>,
-    /// Interactive: the user's camera now.
-    current: Camera,
-    /// Interactive: the step of a translation ([`moves::step_for`]).
-    step: f32,
-    /// Interactive: cameras sent since the last move (or the start).
-    since_move: u64,
+    /// Interactive: the user's view (camera, choices, samples).
+    view: Option<View>,
+    /// The update being sent and what it asks for; kept on a failed send,
+    /// to be sent again as it was.
+    unsent: Option<(CameraUpdate, Asked)>,
+    /// The size frames have now.
+    size: (u32, u32),
+    /// Frames sent and not shown yet: what each asked for.
+    asked: BTreeMap<u64, Asked>,
+    /// Interactive: the samples of the view shown last.
+    accumulation: Option<Accumulation>,
     /// Interactive: time spent waiting for a move with nothing in flight,
     /// left out of the frame times and the run's time.
     idle: Duration,
@@ -90,25 +132,32 @@ pub(super) struct Display {
 
 impl Display {
     pub fn new(opts: DisplayOptions, link: LinkTake) -> Display {
-        let current = opts.cameras.first().copied().unwrap_or(Camera {
-            eye: [0.0; 3],
-            look: [0.0, 0.0, 1.0],
-            up: [0.0, 1.0, 0.0],
-            fov_y_deg: 45.0,
-        });
         let samples = Samples::new(
             if opts.interactive { 1 } else { opts.samples },
             opts.width,
             opts.height,
         );
+        let view = match (opts.interactive, opts.cameras.first()) {
+            (true, Some(&home)) => Some(View::new(
+                home,
+                FrameFormat {
+                    width: opts.width,
+                    height: opts.height,
+                    settings: opts.settings.clone(),
+                },
+                opts.max_samples,
+            )),
+            _ => None,
+        };
         let requested = if opts.interactive {
             0
         } else {
             opts.cameras.len() * samples.per_camera() as usize
         };
         Display {
-            frames: Frames::new(opts.width, opts.height),
+            frames: Frames::new(),
             summary: DisplaySummary::new(opts.width, opts.height, requested),
+            size: (opts.width, opts.height),
             opts,
             sent: 0,
             sending: false,
@@ -116,9 +165,10 @@ impl Display {
             started: None,
             last_shown: None,
             retry_at: None,
-            step: moves::step_for(&current),
-            current,
-            since_move: 0,
+            view,
+            unsent: None,
+            asked: BTreeMap::new(),
+            accumulation: None,
             idle: Duration::ZERO,
             link,
             samples,
@@ -138,13 +188,9 @@ impl Display {
         self.opts.cameras.len() as u64 * u64::from(self.samples.per_camera())
     }
 
-    /// Whether another camera is due (ignoring `frames_ahead`).
-    fn more(&self) -> bool {
-        if self.opts.interactive {
-            self.since_move < IDLE_FRAMES.max(self.ahead() as u64)
-        } else {
-            self.sent < self.total()
-        }
+    /// The interactive view, for the viewer's page.
+    pub fn view(&self) -> Option<&View> {
+        self.view.as_ref()
     }
 
     /// When the loop must call [`Display::tick`]: a frame whose report came
@@ -263,37 +309,97 @@ impl Display {
         out.push(Out::Pong { to: from, ping });
     }
 
-    /// Interactive: the viewer's moves, oldest first, make the next camera.
-    pub fn moved(&mut self, moves: &[Move], out: &mut Vec<Out>) {
-        for mv in moves {
-            self.current = mv.apply(&self.current, self.step);
+    /// Interactive: the viewer's inputs, oldest first, make the next
+    /// frame; the page hears of changed choices.
+    pub fn input(&mut self, inputs: &[ViewInput], out: &mut Vec<Out>) {
+        let Some(view) = &mut self.view else {
+            return;
+        };
+        let before = view.choices();
+        for &i in inputs {
+            view.apply(i);
         }
-        debug!(moves = moves.len(), camera = ?self.current, "camera moved");
-        self.since_move = 0;
+        let after = view.choices();
+        debug!(inputs = inputs.len(), camera = ?view.camera(), "view changed");
+        if after != before {
+            out.push(Out::Choices(after));
+        }
         self.end_or_send(out);
     }
 
     /// Pushes the next camera if one is due, none is being sent, and
-    /// fewer than `frames_ahead` frames are outstanding; the loop reports
-    /// back, and each camera sent makes room to check for the next.
+    /// fewer than `frames_ahead` frames are outstanding (an interactive
+    /// view's refining samples: none, so that a move is never queued
+    /// behind them); the loop reports back, and each camera sent makes
+    /// room to check for the next.
     fn send_camera(&mut self, out: &mut Vec<Out>) {
-        if self.ended || self.sending || !self.more() || self.frames.outstanding() >= self.ahead() {
+        if self.ended || self.sending {
             return;
         }
-        let seq = self.sent;
-        let (camera, sample) = if self.opts.interactive {
-            (self.current, 0)
-        } else {
-            let (camera, sample) = self.samples.of(seq);
-            (self.opts.cameras[camera as usize], sample)
+        let outstanding = self.frames.outstanding();
+        let next = match self.unsent.take() {
+            Some(next) => Some(next),
+            None => self.next_update(outstanding),
+        };
+        let Some((update, asked)) = next else {
+            return;
         };
         self.sending = true;
-        out.push(Out::Camera(CameraUpdate {
+        self.unsent = Some((update.clone(), asked));
+        out.push(Out::Camera(update));
+    }
+
+    /// The next frame to ask for, if one is due and there is room for it.
+    fn next_update(&mut self, outstanding: usize) -> Option<(CameraUpdate, Asked)> {
+        let seq = self.sent;
+        if let Some(view) = &mut self.view {
+            let room = match view.due()? {
+                0 => self.opts.frames_ahead.max(1),
+                _ => 1,
+            };
+            if outstanding >= room {
+                return None;
+            }
+            let next = view.next_frame()?;
+            if let Some(f) = &next.format {
+                self.size = (f.width, f.height);
+            }
+            let asked = Asked {
+                camera: next.camera,
+                width: self.size.0,
+                height: self.size.1,
+                view: next.view,
+                sample: next.sample,
+                pick: next.pick,
+            };
+            let update = CameraUpdate {
+                seq,
+                camera: next.camera,
+                sample: next.sample,
+                format: next.format,
+            };
+            return Some((update, asked));
+        }
+        if seq >= self.total() || outstanding >= self.ahead() {
+            return None;
+        }
+        let (index, sample) = self.samples.of(seq);
+        let camera = self.opts.cameras[index as usize];
+        let asked = Asked {
+            camera,
+            width: self.size.0,
+            height: self.size.1,
+            view: 0,
+            sample,
+            pick: false,
+        };
+        let update = CameraUpdate {
             seq,
             camera,
             sample,
             format: None,
-        }));
+        };
+        Some((update, asked))
     }
 
     /// The camera pushed last has left: its frame is outstanding, and the
@@ -309,12 +415,14 @@ impl Display {
                 self.last_shown = Some(now);
             }
         }
-        self.frames.open(self.sent);
+        if let Some((_, asked)) = self.unsent.take() {
+            self.frames.open(self.sent, asked.width, asked.height);
+            self.asked.insert(self.sent, asked);
+        }
         if self.started.is_none() {
             self.started = Some(now);
         }
         self.sent += 1;
-        self.since_move += 1;
         self.send_camera(out);
     }
 
@@ -350,7 +458,7 @@ impl Display {
 
     fn show(&mut self, ready: ReadyFrame, frame_ms: f64, out: &mut Vec<Out>) {
         let ReadyFrame {
-            image,
+            mut image,
             mut stats,
             missing_pixels,
             ..
@@ -371,23 +479,84 @@ impl Display {
             misses = m.misses,
             "frame shown"
         );
-        match self.samples.add(image) {
-            Added::Camera(image) => out.push(Out::Show {
+        let asked = self.asked.remove(&image.frame);
+        if let (Some(asked), true) = (asked, self.view.is_some()) {
+            if let (true, Some(view)) = (asked.pick, &mut self.view) {
+                let ids = image.primid.as_deref();
+                let depth = image.depth.as_deref();
+                let (w, h) = (image.width, image.height);
+                if let Some(p) = view.picked(&asked.camera, w, h, ids, depth) {
+                    out.push(Out::Picked(p));
+                }
+            }
+            let samples = self.accumulate(&mut image, &asked);
+            let max = self.view.as_ref().map_or(1, View::max_samples);
+            let shown = Shown {
+                samples,
+                view: asked.view,
+                still: samples >= max,
+            };
+            out.push(Out::Show {
                 image,
                 metrics: m.clone(),
-            }),
-            Added::Pending(rgba) => {
-                self.frames.recycle(rgba);
-                out.push(Out::Metrics(m.clone()));
+                shown,
+            });
+        } else {
+            match self.samples.add(image) {
+                Added::Camera(image) => {
+                    let shown = Shown {
+                        samples: self.samples.per_camera(),
+                        view: 0,
+                        still: image.frame + 1 >= self.opts.cameras.len() as u64,
+                    };
+                    out.push(Out::Show {
+                        image,
+                        metrics: m.clone(),
+                        shown,
+                    });
+                }
+                Added::Pending(rgba) => {
+                    self.frames.recycle(rgba);
+                    out.push(Out::Metrics(m.clone()));
+                }
             }
         }
         self.summary.push(m);
     }
 
+    /// Adds an interactive frame to the samples of its view (the first
+    /// sample starts them again) and puts their mean in its place; the
+    /// samples it now shows.
+    fn accumulate(&mut self, image: &mut FrameImage, asked: &Asked) -> u32 {
+        if asked.sample == 0 {
+            self.accumulation = Some(Accumulation {
+                view: asked.view,
+                size: (image.width, image.height),
+                acc: Accumulator::new(image.width, image.height),
+            });
+        }
+        let Some(a) = &mut self.accumulation else {
+            return 1;
+        };
+        let same_view = a.view == asked.view && a.size == (image.width, image.height);
+        if !same_view {
+            // A sample of a view whose first was never shown: alone.
+            return 1;
+        }
+        // A sample again (a pick's frame after the last) adds nothing.
+        if a.acc.samples() == asked.sample && a.acc.add(&image.rgba).is_err() {
+            return 1;
+        }
+        if a.acc.samples() > 1 {
+            image.rgba = a.acc.image();
+        }
+        a.acc.samples()
+    }
+
     /// A shown frame's image is back from the loop: kept for the summary
     /// (`keep_frames`) or its pixels reused for a later frame.
     pub fn shown(&mut self, image: FrameImage) {
-        if self.opts.keep_frames {
+        if self.opts.keep_frames && self.view.is_none() {
             self.summary.images.push(image);
         } else {
             self.frames.recycle(image.rgba);
@@ -440,12 +609,29 @@ mod tests {
         }
     }
 
+    fn settings() -> dray_protocol::RenderSettings {
+        dray_protocol::RenderSettings {
+            shade: true,
+            shadows: false,
+            reflection_depth: 0,
+            light_dir: [0.3, 1.0, 0.2],
+            reflective: dray_protocol::Reflective::None,
+            reflectance: 0.5,
+            voxel_colors: false,
+            want_depth: false,
+            want_prim_ids: false,
+        }
+    }
+
     fn opts(cameras: usize, frames_ahead: usize) -> DisplayOptions {
         DisplayOptions {
             assigner: crate::names::assigner(),
             scheduler: crate::names::scheduler(),
             width: W,
             height: H,
+            settings: settings(),
+            max_samples: 3,
+            web_token: None,
             cameras: (0..cameras).map(camera).collect(),
             interactive: false,
             frames_ahead,
@@ -717,44 +903,56 @@ mod tests {
     }
 
     #[test]
-    fn a_move_in_interactive_mode_becomes_the_next_camera() {
-        let mut o = opts(1, 1);
+    fn an_interactive_view_is_refined_then_rests_and_an_input_starts_again() {
+        let mut o = opts(1, 2);
         o.interactive = true;
         o.web = Some(([127, 0, 0, 1], 0).into());
         let mut d = display(o);
         let mut out = Vec::new();
         d.advance(&mut out);
-        let mut frames = Vec::new();
+        let mut samples = Vec::new();
+        let mut images = Vec::new();
         loop {
-            let cams: Vec<Camera> = out
+            let cams: Vec<(u32, Camera)> = out
                 .iter()
                 .filter_map(|o| match o {
-                    Out::Camera(u) => Some(u.camera),
+                    Out::Camera(u) => Some((u.sample, u.camera)),
                     _ => None,
                 })
                 .collect();
-            assert!(cams.iter().all(|c| *c == camera(0)), "{cams:?}");
+            assert!(cams.iter().all(|c| c.1 == camera(0)), "{cams:?}");
             let sent = send_all(&mut d, &mut out);
             if sent.is_empty() {
                 break;
             }
-            frames.extend(sent.iter().copied());
+            samples.extend(cams.iter().map(|c| c.0));
             for f in sent {
                 complete(&mut d, f, &mut out);
+                images.push(take_shown_image(&mut out).rgba[0][0]);
+                shown(&mut out);
             }
-            shown(&mut out);
         }
-        assert_eq!(frames.len() as u64, IDLE_FRAMES, "then it waits for a move");
-        d.moved(&[Move::Forward, Move::Forward], &mut out);
-        let step = moves::step_for(&camera(0));
-        let want = Move::Forward.apply(&Move::Forward.apply(&camera(0), step), step);
+        assert_eq!(samples, [0, 1, 2], "refined to max_samples, then it rests");
+        // Frame k's pixels are k (see `tile`): the page sees their mean.
+        assert_eq!(images, [0, 1, 1], "0, (0+1)/2, (0+1+2)/3, rounded");
+        d.input(
+            &[ViewInput::Fly {
+                forward: 1.0,
+                right: 0.0,
+                up: 0.0,
+                yaw_deg: 0.0,
+                pitch_deg: 0.0,
+            }],
+            &mut out,
+        );
+        let want = [0.0, 0.0, -4.0];
         assert!(
-            matches!(&out[..], [Out::Camera(u)] if u.seq == IDLE_FRAMES && u.camera == want),
+            matches!(&out[..], [Out::Camera(u)] if u.seq == 3 && u.sample == 0 && u.camera.eye == want),
             "{out:?}"
         );
         let s = d.finish(Some("interrupted".into()));
         assert!(s.complete, "stopping is how an interactive run ends");
-        assert_eq!(s.frames_requested, IDLE_FRAMES as usize);
+        assert_eq!(s.frames_requested, 3);
     }
 
     #[test]
