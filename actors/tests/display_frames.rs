@@ -134,6 +134,19 @@ fn start(frames: usize, ahead: usize, output: Option<std::path::PathBuf>) -> Clu
         keep_frames: true,
         web: None,
         samples: 1,
+        settings: dray_protocol::RenderSettings {
+            shade: true,
+            shadows: false,
+            reflection_depth: 0,
+            light_dir: [0.3, 1.0, 0.2],
+            reflective: dray_protocol::Reflective::All,
+            reflectance: 0.5,
+            voxel_colors: false,
+            want_depth: false,
+            want_prim_ids: false,
+        },
+        max_samples: 1,
+        web_token: None,
     };
     Cluster {
         _net: net,

@@ -615,7 +615,7 @@ mod tests {
             shadows: false,
             reflection_depth: 0,
             light_dir: [0.3, 1.0, 0.2],
-            reflective: dray_protocol::Reflective::None,
+            reflective: dray_protocol::Reflective::All,
             reflectance: 0.5,
             voxel_colors: false,
             want_depth: false,
@@ -707,7 +707,7 @@ mod tests {
     fn shown(out: &mut Vec<Out>) -> Vec<u64> {
         let mut frames = Vec::new();
         out.retain(|o| match o {
-            Out::Show { image, metrics } => {
+            Out::Show { image, metrics, .. } => {
                 assert_eq!(image.frame, metrics.frame);
                 frames.push(image.frame);
                 false
@@ -851,7 +851,7 @@ mod tests {
             complete(&mut d, frame, &mut out);
             for o in std::mem::take(&mut out) {
                 match o {
-                    Out::Show { image, metrics } => {
+                    Out::Show { image, metrics, .. } => {
                         assert_eq!(metrics.frame, frame, "the last sample's row");
                         shown_images.push(image);
                         rows += 1;

@@ -492,7 +492,7 @@ mod tests {
                 shadows: false,
                 reflection_depth: 0,
                 light_dir: [1.0, 1.0, 1.0],
-                reflective: Reflective::None,
+                reflective: Reflective::All,
                 reflectance: 0.5,
                 voxel_colors: false,
                 want_depth: false,
@@ -624,7 +624,7 @@ mod tests {
             });
             let c = view.camera();
             assert!(dray_protocol::check_camera(&c).is_ok(), "{x}: {c:?}");
-            assert!(v(c.eye).length() < 1e3, "{x}: {c:?}");
+            assert!(v(c.eye).length() < 1e6, "{x}: {c:?}");
         }
         assert_eq!(view.choices().scale, 1.0);
     }
