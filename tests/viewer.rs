@@ -245,9 +245,7 @@ async fn the_viewer_refuses_a_page_without_the_token_and_other_sites() {
     .await;
     assert_eq!(b.eval("return dray.drawn").await, Value::from(0));
     let refused = b
-        .eval(&format!(
-            "return fetch('/metrics.json?token=wrongwrongwrongwrong').then(r => r.status)"
-        ))
+        .eval("return fetch('/metrics.json?token=wrongwrongwrongwrong').then(r => r.status)")
         .await;
     assert_eq!(refused, Value::from(403));
     drop(viewer);

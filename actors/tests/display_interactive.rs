@@ -219,7 +219,10 @@ async fn display_interactive_refines_a_still_view_and_a_move_starts_again() {
     // Pixels 30, 60, 90: the page sees their running mean.
     f.complete(0, (W, H), 30, false).await;
     let c1 = f.camera_within(SOON).await.expect("second camera");
-    assert_eq!((c1.seq, c1.sample, c1.camera, c1.format), (1, 1, start_cam(), None));
+    assert_eq!(
+        (c1.seq, c1.sample, c1.camera, c1.format),
+        (1, 1, start_cam(), None)
+    );
     f.complete(1, (W, H), 60, false).await;
     let c2 = f.camera_within(SOON).await.expect("third camera");
     assert_eq!((c2.seq, c2.sample), (2, 2));

@@ -217,6 +217,7 @@ impl Viewer {
                 }
                 Err(_) => {
                     let _ = child.kill();
+                    let _ = child.wait();
                     panic!(
                         "no viewer address within {timeout:?}; output:\n{}",
                         seen.join("\n")
