@@ -102,7 +102,7 @@ pub(crate) enum Command {
         clients: u32,
         /// Render threads per client, 0: one per core (on a database).
         #[arg(long, default_value_t = 1)]
-        threads: u32,
+        threads: usize,
         /// Where the viewer listens [default: 127.0.0.1:7480, or a free
         /// port when it is taken] (on a database).
         #[arg(long, value_name = "IP:PORT")]

@@ -19,7 +19,7 @@ pub const DEFAULT_WEB: &str = "127.0.0.1:7480";
 pub struct ViewArgs {
     pub target: PathBuf,
     pub clients: u32,
-    pub threads: u32,
+    pub threads: usize,
     pub web: Option<String>,
     pub width: u32,
     pub height: u32,
@@ -141,13 +141,20 @@ fn toml_str(p: &Path) -> Result<String> {
     Ok(s.replace('\\', "\\\\").replace('"', "\\\""))
 }
 
-/// The viewer's address: `--web` as given (an error if it does not parse),
-/// else [`DEFAULT_WEB`], or a free port when that one is taken.
+/// The viewer's address: `--web` as given (an error if it does not parse;
+/// port 0 picks a free one), else [`DEFAULT_WEB`], or a free port when that one is taken.
 fn web_address(web: Option<&str>) -> Result<SocketAddr> {
     if let Some(w) = web {
-        return w
+        let addr: SocketAddr = w
             .parse()
-            .map_err(|_| anyhow::anyhow!("--web: {w:?} is not IP:PORT"));
+            .map_err(|_| anyhow::anyhow!("--web: {w:?} is not IP:PORT"))?;
+        if addr.port() != 0 {
+            return Ok(addr);
+        }
+        // Port 0 asks for any free port; the config needs the real one.
+        return TcpListener::bind(addr)
+            .and_then(|l| l.local_addr())
+            .with_context(|| format!("--web: no free port on {}", addr.ip()));
     }
     let default: SocketAddr = DEFAULT_WEB.parse().expect("a valid address");
     if TcpListener::bind(default).is_ok() {

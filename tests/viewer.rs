@@ -5,7 +5,9 @@
 //! The page loads and draws frames; a held key moves the camera and changes
 //! the canvas; standing still raises the samples per pixel to the most and
 //! the last frame is lossless; `Home` brings the first view back exactly;
-//! a click picks a triangle; keys toggle shadows and the resolution; the
+//! a click picks a triangle; keys toggle shadows and the resolution; a
+//! recorded flight comes back as a camera path and plays back to its last
+//! view; a bad path file is refused by name; a screenshot is a PNG; the
 //! overlay's numbers update; when the cluster stops the page says so. The
 //! test leaves a screenshot in the target directory (`viewer.png`).
 
@@ -192,6 +194,94 @@ async fn the_viewer_flies_refines_picks_and_says_when_the_cluster_stops() {
         WAIT,
     )
     .await;
+
+    // A recorded flight downloads as a camera path, and playing it back
+    // ends on the flight's last view, pixel for pixel.
+    let start = b.eval(CANVAS_HASH).await;
+    b.press('r').await;
+    b.wait_for(
+        "recording",
+        "return dray.status.choices.recording === true",
+        SHOW,
+        WAIT,
+    )
+    .await;
+    b.hold_key('w', 300).await;
+    b.hold_key('d', 300).await;
+    b.wait_for(
+        "the flight refined",
+        &format!("return dray.still === true && dray.samples === {max}"),
+        SHOW,
+        WAIT,
+    )
+    .await;
+    let end = b.eval(CANVAS_HASH).await;
+    assert_ne!(end, start, "the flight went nowhere");
+    b.press('r').await;
+    b.wait_for("a recording", "return dray.recorded !== null", SHOW, WAIT)
+        .await;
+    let toml = b.eval("return dray.recorded.toml").await;
+    let path = dray_actors::display::path::CameraPath::parse(
+        toml.as_str().expect("the path's text"),
+        Path::new("recorded.toml"),
+    )
+    .expect("the recording is a camera path");
+    assert!(path.keyframes.len() >= 3, "{path:?}");
+    assert!(!b
+        .eval("return dray.status.choices.recording")
+        .await
+        .as_bool()
+        .unwrap());
+    b.press(HOME_KEY).await;
+    b.wait_for(
+        "home again",
+        &format!("return dray.still === true && dray.samples === {max}"),
+        SHOW,
+        WAIT,
+    )
+    .await;
+    let before = b.eval("return dray.view").await;
+    b.press('p').await;
+    b.wait_for(
+        "the path played and refined",
+        &format!(
+            "return dray.pathFrames > 0 && dray.playing === null && dray.view !== {before}              && dray.still === true && dray.samples === {max}"
+        ),
+        SHOW,
+        WAIT,
+    )
+    .await;
+    let deadline = std::time::Instant::now() + WAIT;
+    while b.eval(CANVAS_HASH).await != end {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "playing the flight did not end where it did"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    // A path file that is not one is refused with its name and key.
+    let bad = tempfile::Builder::new().suffix(".toml").tempfile().unwrap();
+    std::fs::write(bad.path(), "frames = 0\n").unwrap();
+    b.choose_file("open", bad.path()).await;
+    b.wait_for(
+        "the bad path refused",
+        "return dray.errors.some((e) => e.includes('frames: 0 is not'))",
+        SHOW,
+        WAIT,
+    )
+    .await;
+    // A screenshot is the display's image, lossless.
+    b.press('c').await;
+    b.wait_for(
+        "a screenshot",
+        "return dray.screenshot !== null",
+        SHOW,
+        WAIT,
+    )
+    .await;
+    let shot = b.eval("return dray.screenshot").await;
+    assert_eq!(shot["type"], Value::from("image/png"), "{shot}");
+    assert!(num(&shot["bytes"]) > 1000.0, "{shot}");
 
     let shot = b.screenshot().await;
     let out = Path::new(env!("CARGO_TARGET_TMPDIR")).join("viewer.png");

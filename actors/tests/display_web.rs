@@ -46,7 +46,13 @@ fn frame(n: u64, (w, h): (u32, u32), samples: u32, still: bool) -> (ShownFrame, 
         .map(|i| [(i % w) as u8, (i / w) as u8, (i % 251) as u8, 255])
         .collect();
     let m = FrameMetrics::compute(n, &FrameStats::default(), 40.0);
-    let f = ShownFrame::new(n, (w, h), Arc::new(rgba.clone()), (samples, 3, still), m);
+    let f = ShownFrame::new(
+        n,
+        (w, h),
+        Arc::new(rgba.clone()),
+        (samples, 3, still, None),
+        m,
+    );
     (f, rgba)
 }
 

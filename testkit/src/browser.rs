@@ -140,6 +140,19 @@ impl Browser {
         self.hold_key(key, 10).await;
     }
 
+    /// Chooses `file` in the page's file input with the id `id`.
+    pub async fn choose_file(&self, id: &str, file: &Path) {
+        let input = self
+            .client
+            .find(fantoccini::Locator::Id(id))
+            .await
+            .unwrap_or_else(|e| panic!("no #{id} in the page: {e}"));
+        input
+            .send_keys(&file.display().to_string())
+            .await
+            .unwrap_or_else(|e| panic!("choosing {} in #{id}: {e}", file.display()));
+    }
+
     /// The page as a PNG.
     pub async fn screenshot(&self) -> Vec<u8> {
         self.client

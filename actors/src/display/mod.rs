@@ -53,6 +53,7 @@
 mod frames;
 mod metrics;
 pub mod path;
+pub mod record;
 mod samples;
 mod state;
 pub mod view;
@@ -62,7 +63,7 @@ pub use frames::{FrameImage, TileRejected};
 pub use metrics::{DisplaySummary, FrameMetrics, CSV_HEADER};
 pub use path::{CameraPath, Keyframe, PathError};
 pub use view::{Picked, View, ViewInput};
-pub use web::{ShownFrame, WebOptions, WebViewer};
+pub use web::{PageEvent, ShownFrame, WebOptions, WebViewer};
 
 use crate::ActorError;
 use dray_protocol::{Address, Message, RenderSettings};
@@ -339,8 +340,9 @@ pub async fn run_display_with_viewer(
     let mut d = Display::new(opts, Box::new(move || links.take().display));
     if let Some(v) = &sink.viewer {
         let view = d.view();
+        let choices = d.choices();
         v.set_status(|s| {
-            s.choices = view.map(|v| v.choices());
+            s.choices = choices;
             s.home_distance = view.map_or(1.0, |v| v.home_distance());
             s.max_samples = view.map_or(1, |v| v.max_samples());
         });
@@ -414,7 +416,7 @@ pub async fn run_display_with_viewer(
                     while let Some(i) = inputs.as_mut().and_then(|rx| rx.try_recv().ok()) {
                         all.push(i);
                     }
-                    d.input(&all, &mut out);
+                    d.input(all, Instant::now(), &mut out);
                 }
                 None => inputs = None,
             },
@@ -492,7 +494,15 @@ impl Sink {
                     }
                     Out::Picked(p) => {
                         if let Some(v) = &self.viewer {
-                            v.picked(p);
+                            v.tell(PageEvent::Picked(p));
+                        }
+                    }
+                    Out::Recorded(r) => {
+                        if let Err(why) = &r {
+                            warn!("recording the flight: {why}");
+                        }
+                        if let Some(v) = &self.viewer {
+                            v.tell(PageEvent::Recorded(r));
                         }
                     }
                     Out::End(end) => return Ok(Some(end)),
@@ -518,7 +528,7 @@ impl Sink {
                 image.frame,
                 (w, h),
                 std::sync::Arc::new(image.rgba.clone()),
-                (shown.samples, shown.view, shown.still),
+                (shown.samples, shown.view, shown.still, shown.path),
                 metrics.clone(),
             ));
         }

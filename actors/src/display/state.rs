@@ -5,6 +5,7 @@
 //! run loop carries out.
 
 use super::frames::{Frames, ReadyFrame};
+use super::record::{Recorder, Recording};
 use super::samples::{Added, Samples};
 use super::view::{Choices, Picked, View, ViewInput};
 use super::{
@@ -44,6 +45,8 @@ pub(super) enum Out {
     Choices(Choices),
     /// Interactive: a pick's answer.
     Picked(Picked),
+    /// Interactive: a recording stopped, or why it could not be made.
+    Recorded(Result<Recording, String>),
     /// The run is over; nothing follows.
     End(End),
 }
@@ -69,6 +72,9 @@ pub(super) struct Shown {
     /// No frame of this view follows for now: the view is refined (or the
     /// path ends).
     pub still: bool,
+    /// Interactive, playing a path: the frame's index in it and its
+    /// length.
+    pub path: Option<(u32, u32)>,
 }
 
 /// A frame asked for, until it is shown.
@@ -80,6 +86,7 @@ struct Asked {
     view: u64,
     sample: u32,
     pick: bool,
+    path: Option<(u32, u32)>,
 }
 
 /// The samples of one view added up so far.
@@ -112,6 +119,8 @@ pub(super) struct Display {
     retry_at: Option<Instant>,
     /// Interactive: the user's view (camera, choices, samples).
     view: Option<View>,
+    /// Interactive: the flight being recorded.
+    recorder: Option<Recorder>,
     /// The update being sent and what it asks for; kept on a failed send,
     /// to be sent again as it was.
     unsent: Option<(CameraUpdate, Asked)>,
@@ -166,6 +175,7 @@ impl Display {
             last_shown: None,
             retry_at: None,
             view,
+            recorder: None,
             unsent: None,
             asked: BTreeMap::new(),
             accumulation: None,
@@ -309,22 +319,51 @@ impl Display {
         out.push(Out::Pong { to: from, ping });
     }
 
-    /// Interactive: the viewer's inputs, oldest first, make the next
-    /// frame; the page hears of changed choices.
-    pub fn input(&mut self, inputs: &[ViewInput], out: &mut Vec<Out>) {
+    /// Interactive: the viewer's inputs, oldest first, arrived at `now`
+    /// and make the next frame; the page hears of changed choices and of
+    /// a recording that stopped.
+    pub fn input(&mut self, inputs: Vec<ViewInput>, now: Instant, out: &mut Vec<Out>) {
+        let before = self.choices();
         let Some(view) = &mut self.view else {
             return;
         };
-        let before = view.choices();
-        for &i in inputs {
+        let n = inputs.len();
+        for i in inputs {
+            let camera = view.camera();
+            match (&i, self.recorder.take()) {
+                (ViewInput::Record(true), None) => {
+                    self.recorder = Some(Recorder::start(now, camera));
+                }
+                (ViewInput::Record(false), Some(r)) => {
+                    out.push(Out::Recorded(r.stop(now, camera)));
+                }
+                (_, Some(mut r)) => {
+                    r.held(now, camera);
+                    if r.full() {
+                        out.push(Out::Recorded(r.stop(now, camera)));
+                    } else {
+                        self.recorder = Some(r);
+                    }
+                }
+                (_, None) => {}
+            }
             view.apply(i);
         }
-        let after = view.choices();
-        debug!(inputs = inputs.len(), camera = ?view.camera(), "view changed");
+        debug!(inputs = n, camera = ?view.camera(), "view changed");
+        let after = self.choices();
         if after != before {
-            out.push(Out::Choices(after));
+            if let Some(c) = after {
+                out.push(Out::Choices(c));
+            }
         }
         self.end_or_send(out);
+    }
+
+    /// Interactive: what the page shows as the view's choices.
+    pub fn choices(&self) -> Option<Choices> {
+        let mut c = self.view.as_ref()?.choices();
+        c.recording = self.recorder.is_some();
+        Some(c)
     }
 
     /// Pushes the next camera if one is due, none is being sent, and
@@ -371,6 +410,7 @@ impl Display {
                 view: next.view,
                 sample: next.sample,
                 pick: next.pick,
+                path: next.path,
             };
             let update = CameraUpdate {
                 seq,
@@ -392,6 +432,7 @@ impl Display {
             view: 0,
             sample,
             pick: false,
+            path: None,
         };
         let update = CameraUpdate {
             seq,
@@ -495,6 +536,7 @@ impl Display {
                 samples,
                 view: asked.view,
                 still: samples >= max,
+                path: asked.path,
             };
             out.push(Out::Show {
                 image,
@@ -508,6 +550,7 @@ impl Display {
                         samples: self.samples.per_camera(),
                         view: 0,
                         still: image.frame + 1 >= self.opts.cameras.len() as u64,
+                        path: None,
                     };
                     out.push(Out::Show {
                         image,
@@ -936,13 +979,14 @@ mod tests {
         // Frame k's pixels are k (see `tile`): the page sees their mean.
         assert_eq!(images, [0, 1, 1], "0, (0+1)/2, (0+1+2)/3, rounded");
         d.input(
-            &[ViewInput::Fly {
+            vec![ViewInput::Fly {
                 forward: 1.0,
                 right: 0.0,
                 up: 0.0,
                 yaw_deg: 0.0,
                 pitch_deg: 0.0,
             }],
+            Instant::now(),
             &mut out,
         );
         let want = [0.0, 0.0, -4.0];

@@ -15,7 +15,10 @@
 //!   pixel under the click answers with its triangle, distance and point
 //!   ([`View::picked`]);
 //! - **set**: shadows, reflections, the voxel view (the paper's Figure 5)
-//!   and the resolution scale, without a restart.
+//!   and the resolution scale, without a restart;
+//! - **play**: one frame per camera of a path, then the view rests on its
+//!   last camera; a move, `home` or **stop** ends it early (the display's
+//!   [`super::record`] makes paths of flights).
 //!
 //! Any change starts again at sample 0; a camera left still is refined one
 //! jittered sample per frame up to [`View::max_samples`], and then the
@@ -23,6 +26,7 @@
 
 use dray_protocol::{Camera, FrameFormat, RenderSettings};
 use glam::Vec3;
+use std::sync::Arc;
 
 /// Resolution scales a user can choose, smallest first.
 pub const SCALES: [f32; 3] = [0.5, 1.0, 2.0];
@@ -46,7 +50,7 @@ pub const MAX_ZOOM_STEPS: f32 = 20.0;
 const MIN_POLE_DEG: f32 = 2.0;
 
 /// One thing a person did at the viewer.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq)]
 pub enum ViewInput {
     /// Translate by world distances along view, right and up, then turn
     /// (yaw positive: left; pitch positive: up), degrees.
@@ -74,6 +78,13 @@ pub enum ViewInput {
         voxels: Option<bool>,
         scale: Option<f32>,
     },
+    /// Show these cameras one frame each (a camera path's frames).
+    Play(Arc<[Camera]>),
+    /// End a path being played where it is.
+    Stop,
+    /// Start (`true`) or stop recording the flight: the display's
+    /// recorder takes it, the view's camera and frames do not change.
+    Record(bool),
 }
 
 /// What a pick found.
@@ -111,6 +122,8 @@ pub struct NextFrame {
     pub view: u64,
     /// The frame answers a pick.
     pub pick: bool,
+    /// Playing a path: this frame's index in it, and its length.
+    pub path: Option<(u32, u32)>,
 }
 
 /// The view's choices besides the camera, as the page shows them.
@@ -122,6 +135,8 @@ pub struct Choices {
     pub scale: f32,
     pub width: u32,
     pub height: u32,
+    /// The flight is being recorded (the display's recorder sets it).
+    pub recording: bool,
 }
 
 /// The interactive view's state.
@@ -145,6 +160,15 @@ pub struct View {
     sample: u32,
     max_samples: u32,
     pick: Option<PickRequest>,
+    playing: Option<Playing>,
+}
+
+/// A path being played.
+#[derive(Clone, Debug)]
+struct Playing {
+    cameras: Arc<[Camera]>,
+    /// The index of the next frame.
+    next: usize,
 }
 
 impl View {
@@ -172,6 +196,7 @@ impl View {
             sample: 0,
             max_samples: max_samples.max(1),
             pick: None,
+            playing: None,
         }
     }
 
@@ -181,6 +206,11 @@ impl View {
 
     pub fn max_samples(&self) -> u32 {
         self.max_samples
+    }
+
+    /// Whether a path is being played.
+    pub fn playing(&self) -> bool {
+        self.playing.is_some()
     }
 
     /// The model's scale: the home camera's eye→look distance (the page
@@ -198,6 +228,7 @@ impl View {
             scale: self.scale,
             width: f.width,
             height: f.height,
+            recording: false,
         }
     }
 
@@ -205,6 +236,15 @@ impl View {
     /// not: it rides on the next sample).
     pub fn apply(&mut self, input: ViewInput) -> bool {
         let before = (self.camera, self.format());
+        if matches!(
+            input,
+            ViewInput::Fly { .. }
+                | ViewInput::Orbit { .. }
+                | ViewInput::Zoom { .. }
+                | ViewInput::Home
+        ) {
+            self.playing = None;
+        }
         match input {
             ViewInput::Fly {
                 forward,
@@ -237,6 +277,20 @@ impl View {
                     self.scale = s;
                 }
             }
+            ViewInput::Play(cameras) => {
+                let valid = |c: &Camera| dray_protocol::check_camera(c).is_ok();
+                if let Some(&first) = cameras.first().filter(|_| cameras.iter().all(valid)) {
+                    self.camera = first;
+                    self.playing = Some(Playing { cameras, next: 0 });
+                    // Each frame of a path is a view of its own, even
+                    // where the path starts at the camera already shown.
+                    self.view += 1;
+                    self.sample = 0;
+                    return true;
+                }
+            }
+            ViewInput::Stop => self.playing = None,
+            ViewInput::Record(_) => {}
         }
         let changed = before != (self.camera, self.format());
         if changed {
@@ -250,7 +304,9 @@ impl View {
     /// view is refined as far as it goes and no pick waits (a pick after
     /// the last sample asks for the last one again).
     pub fn due(&self) -> Option<u32> {
-        if self.pick.is_some() {
+        if self.playing.is_some() {
+            Some(0)
+        } else if self.pick.is_some() {
             Some(self.sample.min(self.max_samples - 1))
         } else {
             (self.sample < self.max_samples).then_some(self.sample)
@@ -259,6 +315,7 @@ impl View {
 
     /// The frame to ask for next (see [`Self::due`]).
     pub fn next_frame(&mut self) -> Option<NextFrame> {
+        let path = self.next_of_path();
         let sample = self.due()?;
         let pick = self.pick.is_some();
         let mut format = self.format();
@@ -275,7 +332,27 @@ impl View {
             format: changed.then_some(format),
             view: self.view,
             pick,
+            path,
         })
+    }
+
+    /// Playing: moves to the path's next camera (a view of its own) and
+    /// ends the path after its last; the frame's place in the path.
+    fn next_of_path(&mut self) -> Option<(u32, u32)> {
+        let p = self.playing.as_mut()?;
+        let at = p.next;
+        let len = p.cameras.len();
+        let camera = p.cameras[at];
+        p.next += 1;
+        if p.next >= len {
+            self.playing = None;
+        }
+        if at > 0 {
+            self.camera = camera;
+            self.view += 1;
+            self.sample = 0;
+        }
+        Some((at as u32, len as u32))
     }
 
     /// A frame asked for with `pick` was shown: answers the pick from its
@@ -503,6 +580,54 @@ mod tests {
 
     fn close(a: [f32; 3], b: [f32; 3]) -> bool {
         (v(a) - v(b)).length() < 1e-3
+    }
+
+    #[test]
+    fn a_path_plays_one_frame_per_camera_then_rests_on_its_last() {
+        let mut view = View::new(home(), base(), 2);
+        view.next_frame();
+        let at = |z: f32| Camera {
+            eye: [0.0, 0.0, z],
+            ..home()
+        };
+        let path: Arc<[Camera]> = vec![home(), at(-9.0), at(-8.0)].into();
+        assert!(view.apply(ViewInput::Play(path.clone())));
+        assert!(view.playing());
+        let frames: Vec<NextFrame> = std::iter::from_fn(|| view.next_frame()).collect();
+        let got: Vec<_> = frames
+            .iter()
+            .map(|f| (f.camera, f.sample, f.path))
+            .collect();
+        assert_eq!(
+            got,
+            [
+                (home(), 0, Some((0, 3))),
+                (at(-9.0), 0, Some((1, 3))),
+                (at(-8.0), 0, Some((2, 3))),
+                (at(-8.0), 1, None),
+            ]
+        );
+        let views: Vec<u64> = frames.iter().map(|f| f.view).collect();
+        assert!(views.windows(2).take(2).all(|w| w[0] < w[1]) && views[2] == views[3]);
+        assert!(!view.playing());
+        // A move ends a path early; a bad camera refuses the whole path.
+        view.apply(ViewInput::Play(path));
+        view.next_frame();
+        view.apply(ViewInput::Fly {
+            forward: 1.0,
+            right: 0.0,
+            up: 0.0,
+            yaw_deg: 0.0,
+            pitch_deg: 0.0,
+        });
+        assert!(!view.playing());
+        let bad = Camera {
+            look: home().eye,
+            ..home()
+        };
+        assert!(!view.apply(ViewInput::Play(vec![home(), bad].into())));
+        assert!(!view.playing());
+        assert!(!view.apply(ViewInput::Play(Vec::new().into())));
     }
 
     #[test]

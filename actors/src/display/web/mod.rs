@@ -7,9 +7,9 @@
 //! - `GET /ws?token=T` the WebSocket ([`wire`] has what travels on it):
 //!   the server sends a `hello`, then every frame shown (a binary message:
 //!   JPEG while the view changes, PNG once it is refined), the view's
-//!   choices when they change, pick answers, and `ended` when the run
-//!   ends; the page sends inputs ([`super::view::ViewInput`]), taken only
-//!   in interactive mode;
+//!   choices when they change, pick answers, recorded flights, and
+//!   `ended` when the run ends; the page sends inputs
+//!   ([`super::view::ViewInput`]), taken only in interactive mode;
 //! - `GET /frame.png?token=T`, `GET /metrics.json?token=T` the latest frame
 //!   and its metrics, for scripts.
 //!
@@ -22,6 +22,7 @@
 
 pub mod wire;
 
+use super::record::Recording;
 use super::view::{Choices, Picked, ViewInput};
 use super::FrameMetrics;
 use axum::extract::ws::{Message as WsMessage, WebSocket, WebSocketUpgrade};
@@ -44,8 +45,11 @@ pub const MAX_CONNECTIONS: usize = 64;
 /// Inputs waiting for the display; more are dropped (the page sends the
 /// next ones anyway).
 pub const INPUT_QUEUE: usize = 256;
-/// Largest message a page may send, bytes.
+/// Largest input a page may send but a path to play, bytes.
 pub const MAX_INPUT_BYTES: usize = 4096;
+/// Largest path to play a page may send (its TOML), bytes: about 8,000
+/// keyframes, a recorded flight of half an hour.
+pub const MAX_PATH_BYTES: usize = 1 << 20;
 /// JPEG quality of frames while the view changes.
 pub const JPEG_QUALITY: u8 = 85;
 
@@ -65,6 +69,8 @@ pub struct ShownFrame {
     /// The last frame of its view for now (refined, or the path's end):
     /// sent lossless.
     pub still: bool,
+    /// Playing a path: the frame's index in it and its length.
+    pub path: Option<(u32, u32)>,
     pub metrics: FrameMetrics,
     encoded: OnceLock<Arc<Vec<u8>>>,
 }
@@ -74,7 +80,7 @@ impl ShownFrame {
         frame: u64,
         (width, height): (u32, u32),
         rgba: Arc<Vec<[u8; 4]>>,
-        (samples, view, still): (u32, u64, bool),
+        (samples, view, still, path): (u32, u64, bool, Option<(u32, u32)>),
         metrics: FrameMetrics,
     ) -> ShownFrame {
         ShownFrame {
@@ -85,6 +91,7 @@ impl ShownFrame {
             samples,
             view,
             still,
+            path,
             metrics,
             encoded: OnceLock::new(),
         }
@@ -112,13 +119,22 @@ pub struct ViewerStatus {
     pub ended: Option<String>,
 }
 
+/// What every page hears of besides frames and status.
+#[derive(Clone, Debug)]
+pub enum PageEvent {
+    /// A pick's answer.
+    Picked(Picked),
+    /// A recording stopped: the path, or why there is none.
+    Recorded(Result<Recording, String>),
+}
+
 struct Shared {
     token: String,
     /// `host:port` the server listens on, which a page's Origin must name.
     addr: SocketAddr,
     frames: watch::Sender<Option<Arc<ShownFrame>>>,
     status: watch::Sender<ViewerStatus>,
-    picks: broadcast::Sender<Picked>,
+    events: broadcast::Sender<PageEvent>,
     inputs: Option<mpsc::Sender<ViewInput>>,
     slots: Arc<Semaphore>,
 }
@@ -175,7 +191,7 @@ impl WebViewer {
                 max_samples: 1,
                 ended: None,
             }),
-            picks: broadcast::Sender::new(16),
+            events: broadcast::Sender::new(16),
             inputs: tx,
             slots: Arc::new(Semaphore::new(MAX_CONNECTIONS)),
         });
@@ -215,9 +231,9 @@ impl WebViewer {
         self.shared.status.send_modify(f);
     }
 
-    /// Answers a pick on every page.
-    pub fn picked(&self, p: Picked) {
-        let _ = self.shared.picks.send(p);
+    /// Tells every page.
+    pub fn tell(&self, e: PageEvent) {
+        let _ = self.shared.events.send(e);
     }
 }
 
@@ -326,7 +342,7 @@ async fn socket(
     let Ok(permit) = shared.slots.clone().try_acquire_owned() else {
         return refuse(StatusCode::SERVICE_UNAVAILABLE, "too many viewers\n");
     };
-    ws.max_message_size(MAX_INPUT_BYTES)
+    ws.max_message_size(MAX_PATH_BYTES)
         .on_upgrade(move |ws| async move {
             session(ws, &shared).await;
             drop(permit);
@@ -337,7 +353,7 @@ async fn socket(
 async fn session(mut ws: WebSocket, shared: &Shared) {
     let mut frames = shared.frames.subscribe();
     let mut status = shared.status.subscribe();
-    let mut picks = shared.picks.subscribe();
+    let mut events = shared.events.subscribe();
     // The newest frame counts as unseen: a page that joins late sees it.
     frames.mark_changed();
     let hello = wire::status_message(&status.borrow_and_update());
@@ -375,9 +391,9 @@ async fn session(mut ws: WebSocket, shared: &Shared) {
                     break;
                 }
             }
-            pick = picks.recv() => match pick {
-                Ok(p) => {
-                    if ws.send(WsMessage::Text(wire::picked_message(&p).into())).await.is_err() {
+            event = events.recv() => match event {
+                Ok(e) => {
+                    if ws.send(WsMessage::Text(wire::event_message(&e).into())).await.is_err() {
                         break;
                     }
                 }

@@ -3,22 +3,29 @@
 //! Server → page:
 //! - a **frame**: a binary message, `u32` (little-endian) header length,
 //!   the header (JSON: `frame`, `width`, `height`, `samples`, `view`,
-//!   `still`, `format` = `"jpeg"` or `"png"`, `metrics`), then the image;
+//!   `still`, `path` = `[index, length]` while a path plays (else null),
+//!   `format` = `"jpeg"` or `"png"`, `metrics`), then the image;
 //! - text messages (JSON with `type`): `status` (interactive, choices,
-//!   home distance, max samples, `ended`), `picked`, `error`.
+//!   home distance, max samples, `ended`), `picked`, `recorded` (`toml`:
+//!   the flight as a camera-path file, `keyframes`, `frames`, `seconds`),
+//!   `error`.
 //!
 //! Page → server: one input per text message, at most
-//! [`super::MAX_INPUT_BYTES`]:
+//! [`super::MAX_INPUT_BYTES`] (a path to play: [`super::MAX_PATH_BYTES`]):
 //! `{"fly":{"forward":f,"right":f,"up":f,"yaw":deg,"pitch":deg}}`,
 //! `{"orbit":{"yaw":deg,"pitch":deg}}`, `{"zoom":{"steps":f}}`, `"home"`,
 //! `{"pick":{"x":f,"y":f,"pivot":bool}}`,
 //! `{"set":{"shadows":bool,"reflections":bool,"voxels":bool,"scale":f}}`
-//! (any of `set`'s keys may be left out). Unknown keys are refused.
+//! (any of `set`'s keys may be left out), `{"record":bool}`,
+//! `{"play":{"name":"file.toml","toml":"…"}}` (a camera-path file, see
+//! [`super::super::path`]), `"stop"`. Unknown keys are refused.
 
+use super::super::path::CameraPath;
 use super::super::view::{Picked, ViewInput};
-use super::{ShownFrame, ViewerStatus, JPEG_QUALITY};
+use super::{PageEvent, ShownFrame, ViewerStatus, JPEG_QUALITY};
 use serde::Deserialize;
 use serde_json::json;
+use std::path::Path;
 
 /// An input as the page writes it.
 #[derive(Deserialize)]
@@ -62,20 +69,26 @@ enum Input {
         #[serde(default)]
         scale: Option<f32>,
     },
+    Record(bool),
+    Play {
+        name: String,
+        toml: String,
+    },
+    Stop,
 }
 
 /// A page's input, or why it is refused. Numbers are bounded later by
 /// [`super::super::view::View::apply`]; here only the shape is checked.
 pub fn parse_input(text: &str) -> Result<ViewInput, String> {
-    if text.len() > super::MAX_INPUT_BYTES {
-        return Err(format!(
-            "an input of {} bytes (at most {})",
-            text.len(),
-            super::MAX_INPUT_BYTES
-        ));
+    let too_long = |most: usize| format!("an input of {} bytes (at most {most})", text.len());
+    if text.len() > super::MAX_PATH_BYTES {
+        return Err(too_long(super::MAX_PATH_BYTES));
     }
     let input: Input =
         serde_json::from_str(text).map_err(|e| format!("not an input the viewer knows: {e}"))?;
+    if text.len() > super::MAX_INPUT_BYTES && !matches!(input, Input::Play { .. }) {
+        return Err(too_long(super::MAX_INPUT_BYTES));
+    }
     Ok(match input {
         Input::Fly {
             forward,
@@ -108,6 +121,13 @@ pub fn parse_input(text: &str) -> Result<ViewInput, String> {
             voxels,
             scale,
         },
+        Input::Record(on) => ViewInput::Record(on),
+        Input::Play { name, toml } => {
+            let name: String = name.chars().filter(|c| !c.is_control()).take(200).collect();
+            let path = CameraPath::parse(&toml, Path::new(&name)).map_err(|e| e.to_string())?;
+            ViewInput::Play(path.cameras().into())
+        }
+        Input::Stop => ViewInput::Stop,
     })
 }
 
@@ -128,6 +148,7 @@ pub(super) fn frame_message(f: &ShownFrame) -> Vec<u8> {
         "samples": f.samples,
         "view": f.view,
         "still": f.still,
+        "path": f.path.map(|(at, len)| [at, len]),
         "format": format,
         "metrics": f.metrics,
     })
@@ -163,6 +184,7 @@ pub(super) fn status_message(s: &ViewerStatus) -> String {
             "scale": c.scale,
             "width": c.width,
             "height": c.height,
+            "recording": c.recording,
         })
     });
     json!({
@@ -176,7 +198,22 @@ pub(super) fn status_message(s: &ViewerStatus) -> String {
     .to_string()
 }
 
-pub(super) fn picked_message(p: &Picked) -> String {
+pub(super) fn event_message(e: &PageEvent) -> String {
+    match e {
+        PageEvent::Picked(p) => picked_message(p),
+        PageEvent::Recorded(Ok(r)) => json!({
+            "type": "recorded",
+            "toml": r.path.to_toml(),
+            "keyframes": r.path.keyframes.len(),
+            "frames": r.path.frames,
+            "seconds": r.seconds,
+        })
+        .to_string(),
+        PageEvent::Recorded(Err(why)) => error_message(&format!("recording the flight: {why}")),
+    }
+}
+
+fn picked_message(p: &Picked) -> String {
     json!({
         "type": "picked",
         "x": p.x,
@@ -263,6 +300,32 @@ mod tests {
                 pivot: true
             })
         );
+        assert_eq!(
+            parse_input(r#"{"record":true}"#),
+            Ok(ViewInput::Record(true))
+        );
+        assert_eq!(parse_input("\"stop\""), Ok(ViewInput::Stop));
+        let keyframes = (0..60)
+            .map(|i| super::super::super::path::Keyframe {
+                eye: [i as f32 * 0.1, 1.0, 5.0],
+                look: [0.0, 0.0, 0.0],
+                up: [0.0, 1.0, 0.0],
+                fov_y_deg: 45.0,
+            })
+            .collect();
+        let path = CameraPath::new(300, keyframes).unwrap();
+        let play = json!({"play": {"name": "w.toml", "toml": path.to_toml()}}).to_string();
+        assert!(
+            play.len() > super::super::MAX_INPUT_BYTES,
+            "a path may be longer"
+        );
+        assert_eq!(
+            parse_input(&play),
+            Ok(ViewInput::Play(path.cameras().into()))
+        );
+        let bad = json!({"play": {"name": "w.toml", "toml": "frames = 0"}}).to_string();
+        let e = parse_input(&bad).unwrap_err();
+        assert!(e.starts_with("w.toml: frames:"), "{e}");
         let long = format!("{{\"zoom\":{{\"steps\":1{}}}}}", " ".repeat(5000));
         for bad in [
             "",
