@@ -6,7 +6,8 @@
 //!   the same seconds;
 //! - **key to pixels**: from standing still (refined), the time from a key
 //!   press to the first frame of the moved camera on the canvas, against
-//!   the cluster's frame time.
+//!   the cluster's frame time; and to that frame's message arriving at
+//!   the page (the rest is the browser decoding and drawing it).
 //!
 //!     cargo run --release --example bench_viewer [-- TRIANGLES CLIENTS SECONDS]
 //!
@@ -19,7 +20,7 @@ use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
 const WAIT: Duration = Duration::from_secs(120);
-const PRESSES: usize = 9;
+const PRESSES: usize = 15;
 
 fn num(v: &Value) -> f64 {
     v.as_f64().unwrap_or(f64::NAN)
@@ -51,9 +52,9 @@ async fn main() {
         panic!("no chromium or chromedriver (Debian: chromium chromium-driver)");
     };
     println!(
-        "| size | cluster fps | displayed fps | displayed / cluster | frame ms | key to pixels ms (median of {PRESSES}) | minus frame time |"
+        "| size | cluster fps | displayed fps | displayed / cluster | frame ms | key to arrival ms | key to pixels ms (median of {PRESSES}) | minus frame time |"
     );
-    println!("|---|---:|---:|---:|---:|---:|---:|");
+    println!("|---|---:|---:|---:|---:|---:|---:|---:|");
     for (w, h) in [(640u32, 480u32), (1280, 720)] {
         let web = format!("127.0.0.1:{}", dray_testkit::browser::free_tcp_port());
         let (ws, hs, cs) = (w.to_string(), h.to_string(), clients.to_string());
@@ -104,6 +105,7 @@ async fn main() {
 
         // Key to pixels, from a refined view each time.
         let mut latencies = Vec::new();
+        let mut arrivals = Vec::new();
         for _ in 0..PRESSES {
             b.wait_for(
                 "refined",
@@ -124,14 +126,16 @@ async fn main() {
             )
             .await;
             latencies.push(num(&b.eval(&format!("return dray.latencies[{n}]")).await));
+            arrivals.push(num(&b.eval(&format!("return dray.arrivals[{n}]")).await));
         }
         let latency = median(latencies);
         println!(
-            "| {w}×{h} | {:.1} | {:.1} | {:.2} | {:.1} | {:.1} | {:+.1} |",
+            "| {w}×{h} | {:.1} | {:.1} | {:.2} | {:.1} | {:.1} | {:.1} | {:+.1} |",
             rendered / secs,
             drawn / secs,
             drawn / rendered.max(1.0),
             frame_ms,
+            median(arrivals),
             latency,
             latency - frame_ms
         );

@@ -67,3 +67,26 @@ mod tests {
         }
     }
 }
+
+/// How much lower than the rest of its process a render thread runs
+/// (`nice` steps): rendering is the batch work of a host, and the
+/// loader's fetches and decodes, the display's encoding and a viewer's
+/// browser on the same host should not wait behind it.
+pub const RENDER_THREAD_NICENESS: i32 = 5;
+
+/// Lowers the calling thread's priority by `steps` nice levels (Linux
+/// sets nice per thread); where it cannot, the thread runs as it is.
+pub fn lower_this_thread_priority(steps: i32) {
+    #[cfg(target_os = "linux")]
+    // SAFETY: plain syscalls on the calling thread's own id.
+    unsafe {
+        let tid = libc::syscall(libc::SYS_gettid) as libc::id_t;
+        *libc::__errno_location() = 0;
+        let now = libc::getpriority(libc::PRIO_PROCESS, tid);
+        if *libc::__errno_location() == 0 {
+            let _ = libc::setpriority(libc::PRIO_PROCESS, tid, (now + steps).min(19));
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    let _ = steps;
+}

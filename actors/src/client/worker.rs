@@ -155,6 +155,9 @@ pub(crate) fn render_thread(
     index: usize,
     mut tiles: mpsc::UnboundedReceiver<TileJob>,
 ) {
+    dray_runtime::process::lower_this_thread_priority(
+        dray_runtime::process::RENDER_THREAD_NICENESS,
+    );
     let limit = || match ctx.mode {
         MissMode::Block => 1,
         MissMode::Suspend => ctx.tiles_in_progress.load(Ordering::Relaxed).max(1),
