@@ -57,17 +57,6 @@ pub fn interrupt(pid: u32) -> std::io::Result<()> {
     }
 }
 
-#[cfg(test)]
-mod tests {
-    #[test]
-    fn peak_rss_is_known_on_linux() {
-        if cfg!(target_os = "linux") {
-            let rss = super::peak_rss_bytes().expect("VmHWM");
-            assert!(rss > 1 << 20, "{rss}");
-        }
-    }
-}
-
 /// How much lower than the rest of its process a render thread runs
 /// (`nice` steps): rendering is the batch work of a host, and the
 /// loader's fetches and decodes, the display's encoding and a viewer's
@@ -89,4 +78,38 @@ pub fn lower_this_thread_priority(steps: i32) {
     }
     #[cfg(not(target_os = "linux"))]
     let _ = steps;
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn peak_rss_is_known_on_linux() {
+        if cfg!(target_os = "linux") {
+            let rss = super::peak_rss_bytes().expect("VmHWM");
+            assert!(rss > 1 << 20, "{rss}");
+        }
+    }
+
+    #[cfg(target_os = "linux")]
+    #[test]
+    fn a_thread_lowers_only_its_own_priority() {
+        let nice = || unsafe {
+            libc::getpriority(
+                libc::PRIO_PROCESS,
+                libc::syscall(libc::SYS_gettid) as libc::id_t,
+            )
+        };
+        let here = nice();
+        let there = std::thread::spawn(move || {
+            let before = nice();
+            lower_this_thread_priority(RENDER_THREAD_NICENESS);
+            (before, nice())
+        })
+        .join()
+        .unwrap();
+        assert_eq!(there.1, (there.0 + RENDER_THREAD_NICENESS).min(19));
+        assert_eq!(nice(), here, "the calling thread only");
+    }
 }
