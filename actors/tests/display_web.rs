@@ -1,7 +1,7 @@
 //! The live web viewer over a real loopback socket: the page, the token,
 //! the WebSocket's frames and messages, and what it refuses.
 
-use dray_actors::display::web::wire;
+use dray_actors::display::web::{wire, MAX_INPUT_BYTES, MAX_PATH_BYTES};
 use dray_actors::display::{FrameMetrics, ShownFrame, WebOptions, WebViewer};
 use dray_protocol::FrameStats;
 use futures::{SinkExt, StreamExt};
@@ -244,8 +244,18 @@ async fn display_web_viewer_takes_inputs_refuses_garbage_and_keeps_serving() {
         let e = next_text(&mut ws).await;
         assert_eq!(e["type"], "error", "{bad:?}");
     }
-    // Too big a message closes the socket; the server goes on.
-    ws.send(Ws::Text("x".repeat(10_000).into())).await.ok();
+    // An input longer than an input may be is refused; a message longer
+    // than a path to play closes the socket; the server goes on.
+    let long = format!(r#"{{"zoom":{{"steps":1{}}}}}"#, " ".repeat(MAX_INPUT_BYTES));
+    ws.send(Ws::Text(long.into())).await.unwrap();
+    let e = next_text(&mut ws).await;
+    assert!(
+        e["message"].as_str().unwrap().starts_with("an input of"),
+        "{e}"
+    );
+    ws.send(Ws::Text("x".repeat(MAX_PATH_BYTES + 1).into()))
+        .await
+        .ok();
     let closed = tokio::time::timeout(SOON, async {
         while let Some(Ok(m)) = ws.next().await {
             if let Ws::Close(_) = m {
