@@ -289,7 +289,10 @@ async fn the_viewer_flies_refines_picks_and_says_when_the_cluster_stops() {
 
     // The cluster stops: the page says so.
     let status = viewer.interrupt(WAIT);
-    assert!(status.is_some(), "dray view did not stop on Ctrl-C");
+    assert!(
+        status.is_some_and(|s| s.success()),
+        "dray view did not stop cleanly on SIGINT: {status:?}"
+    );
     b.wait_for(
         "the page says the cluster stopped",
         "const b = document.getElementById('banner'); \

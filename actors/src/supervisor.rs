@@ -112,13 +112,12 @@ impl StopSignals {
         })
     }
 
-    /// The next one: whether it came from a terminal (SIGINT, which the
-    /// nodes got too) and its name.
-    async fn next(&mut self) -> (bool, &'static str) {
+    /// The next one's name.
+    async fn next(&mut self) -> &'static str {
         tokio::select! {
-            _ = self.interrupt.recv() => (true, "SIGINT"),
-            _ = self.terminate.recv() => (false, "SIGTERM"),
-            _ = self.hangup.recv() => (false, "SIGHUP"),
+            _ = self.interrupt.recv() => "SIGINT",
+            _ = self.terminate.recv() => "SIGTERM",
+            _ = self.hangup.recv() => "SIGHUP",
         }
     }
 }
@@ -463,12 +462,13 @@ pub async fn cluster(
                     }
                 }
             }
-            (from_terminal, name) = signals.next() => {
-                if !from_terminal {
-                    for p in &procs {
-                        if let Some(pid) = p.child.as_ref().and_then(Child::id) {
-                            let _ = dray_runtime::process::interrupt(pid);
-                        }
+            name = signals.next() => {
+                // Passed on even for SIGINT: a Ctrl-C at a terminal reaches
+                // the nodes too (a node takes the first and ignores the
+                // rest), but a `kill -INT` of this process alone does not.
+                for p in &procs {
+                    if let Some(pid) = p.child.as_ref().and_then(Child::id) {
+                        let _ = dray_runtime::process::interrupt(pid);
                     }
                 }
                 if interactive && all_ready && interrupted.is_none() {
