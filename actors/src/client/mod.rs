@@ -128,14 +128,27 @@ pub struct ClientSummary {
 }
 
 /// Sends messages in order from a task of their own, so that the actor
-/// loop never waits on a slow peer; failures are logged.
+/// loop never waits on a slow peer; failures are logged, the first to a
+/// peer as a warning and the rest until a send there succeeds again at
+/// debug level (a run that ends leaves many tiles with no one to take
+/// them).
 fn sender(me: ActorRef, what: &'static str) -> mpsc::UnboundedSender<(Address, Message)> {
     let (tx, mut rx) = mpsc::unbounded_channel::<(Address, Message)>();
     tokio::spawn(async move {
+        let mut failing = std::collections::HashSet::new();
         while let Some((to, msg)) = rx.recv().await {
             let kind = msg.kind().name();
-            if let Err(e) = me.send(&to, msg).await {
-                warn!(%to, kind, error = %e, "{what}: sending failed");
+            match me.send(&to, msg).await {
+                Ok(()) => {
+                    failing.remove(&to);
+                }
+                Err(e) if failing.contains(&to) => {
+                    debug!(%to, kind, error = %e, "{what}: sending failed again");
+                }
+                Err(e) => {
+                    warn!(%to, kind, error = %e, "{what}: sending failed (more to this peer at debug level)");
+                    failing.insert(to);
+                }
             }
         }
     });
