@@ -946,6 +946,52 @@ mod tests {
     }
 
     #[test]
+    fn a_recording_follows_the_view_and_the_page_hears_of_it() {
+        let mut o = opts(1, 2);
+        o.interactive = true;
+        o.web = Some(([127, 0, 0, 1], 0).into());
+        let mut d = display(o);
+        let mut out = Vec::new();
+        let t0 = Instant::now();
+        let fly = ViewInput::Fly {
+            forward: 1.0,
+            right: 0.0,
+            up: 0.0,
+            yaw_deg: 0.0,
+            pitch_deg: 0.0,
+        };
+        d.input(vec![ViewInput::Record(true)], t0, &mut out);
+        assert!(
+            out.iter()
+                .any(|o| matches!(o, Out::Choices(c) if c.recording)),
+            "{out:?}"
+        );
+        out.clear();
+        d.input(vec![fly.clone()], t0 + Duration::from_millis(450), &mut out);
+        out.clear();
+        d.input(
+            vec![ViewInput::Record(false)],
+            t0 + Duration::from_millis(700),
+            &mut out,
+        );
+        let rec = out
+            .iter()
+            .find_map(|o| match o {
+                Out::Recorded(r) => Some(r.clone().expect("a path")),
+                _ => None,
+            })
+            .expect("the recording");
+        let zs: Vec<f32> = rec.path.keyframes.iter().map(|k| k.eye[2]).collect();
+        // Still until 450 ms (keyframes at 0, 200, 400), then one step
+        // closer (600), and where it stopped.
+        assert_eq!(zs, [-5.0, -5.0, -5.0, -4.0, -4.0], "{zs:?}");
+        assert!(out
+            .iter()
+            .any(|o| matches!(o, Out::Choices(c) if !c.recording)));
+        assert_eq!(d.choices().map(|c| c.recording), Some(false));
+    }
+
+    #[test]
     fn an_interactive_view_is_refined_then_rests_and_an_input_starts_again() {
         let mut o = opts(1, 2);
         o.interactive = true;
