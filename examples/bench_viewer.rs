@@ -47,7 +47,6 @@ async fn main() {
     assert!(dray.exists(), "build dray first: cargo build --release");
     eprintln!("making a {triangles}-triangle plant");
     let plant = dray_testkit::plant_db(triangles, 1, 4096);
-    let db = plant.path.display().to_string();
     let Some(browser) = Browser::start(1400, 900).await else {
         panic!("no chromium or chromedriver (Debian: chromium chromium-driver)");
     };
@@ -57,19 +56,7 @@ async fn main() {
     println!("|---|---:|---:|---:|---:|---:|---:|---:|");
     for (w, h) in [(640u32, 480u32), (1280, 720)] {
         let web = format!("127.0.0.1:{}", dray_testkit::browser::free_tcp_port());
-        let (ws, hs, cs) = (w.to_string(), h.to_string(), clients.to_string());
-        let args = [
-            "view",
-            &db,
-            "--clients",
-            &cs,
-            "--web",
-            &web,
-            "--width",
-            &ws,
-            "--height",
-            &hs,
-        ];
+        let args = dray_testkit::browser::view_args(&plant.path, clients, &web, (w, h));
         let viewer = Viewer::start(&dray, &args, WAIT);
         let b = &browser;
         b.client.goto(&viewer.url).await.expect("the page loads");

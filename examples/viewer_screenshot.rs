@@ -19,23 +19,11 @@ async fn main() {
     let dray = root.join("target/release/dray");
     assert!(dray.exists(), "build dray first: cargo build --release");
     let plant = dray_testkit::plant_db(300_000, 1, 4096);
-    let db = plant.path.display().to_string();
     let Some(browser) = Browser::start(1280, 760).await else {
         panic!("no chromium or chromedriver (Debian: chromium chromium-driver)");
     };
     let web = format!("127.0.0.1:{}", dray_testkit::browser::free_tcp_port());
-    let args = [
-        "view",
-        &db,
-        "--clients",
-        "2",
-        "--web",
-        &web,
-        "--width",
-        "960",
-        "--height",
-        "540",
-    ];
+    let args = dray_testkit::browser::view_args(&plant.path, 2, &web, (960, 540));
     let viewer = Viewer::start(&dray, &args, WAIT);
     let b = &browser;
     b.client.goto(&viewer.url).await.expect("the page loads");

@@ -142,7 +142,8 @@ fn toml_str(p: &Path) -> Result<String> {
 }
 
 /// The viewer's address: `--web` as given (an error if it does not parse;
-/// port 0 picks a free one), else [`DEFAULT_WEB`], or a free port when that one is taken.
+/// port 0 picks a free one), else [`DEFAULT_WEB`], or a free port when
+/// that one is taken.
 fn web_address(web: Option<&str>) -> Result<SocketAddr> {
     if let Some(w) = web {
         let addr: SocketAddr = w

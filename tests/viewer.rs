@@ -11,7 +11,7 @@
 //! overlay's numbers update; when the cluster stops the page says so. The
 //! test leaves a screenshot in the target directory (`viewer.png`).
 
-use dray_testkit::browser::{Browser, Viewer, HOME_KEY};
+use dray_testkit::browser::{view_args, Browser, Viewer, HOME_KEY};
 use serde_json::Value;
 use std::path::Path;
 use std::time::Duration;
@@ -35,27 +35,25 @@ fn num(v: &Value) -> f64 {
     v.as_f64().unwrap_or_else(|| panic!("not a number: {v}"))
 }
 
+/// Waits until the canvas's digest is `want`; panics saying `what` did not
+/// happen.
+async fn wait_for_pixels(b: &Browser, want: &Value, what: &str) {
+    let deadline = std::time::Instant::now() + WAIT;
+    while b.eval(CANVAS_HASH).await != *want {
+        assert!(std::time::Instant::now() < deadline, "{what}");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_viewer_flies_refines_picks_and_says_when_the_cluster_stops() {
     let Some(browser) = Browser::start(1200, 800).await else {
         return;
     };
     let plant = dray_testkit::plant_db(60_000, 3, 2048);
-    let db = plant.path.display().to_string();
     let web = format!("127.0.0.1:{}", dray_testkit::browser::free_tcp_port());
     let dray = Path::new(env!("CARGO_BIN_EXE_dray"));
-    let args = [
-        "view",
-        &db,
-        "--clients",
-        "2",
-        "--web",
-        &web,
-        "--width",
-        "240",
-        "--height",
-        "160",
-    ];
+    let args = view_args(&plant.path, 2, &web, (240, 160));
     let mut viewer = Viewer::start(dray, &args, WAIT);
     assert!(
         viewer.url.starts_with(&format!("http://{web}/?token=")),
@@ -138,14 +136,7 @@ async fn the_viewer_flies_refines_picks_and_says_when_the_cluster_stops() {
         WAIT,
     )
     .await;
-    let deadline = std::time::Instant::now() + WAIT;
-    while b.eval(CANVAS_HASH).await != home {
-        assert!(
-            std::time::Instant::now() < deadline,
-            "home did not bring the first view back"
-        );
-        tokio::time::sleep(Duration::from_millis(50)).await;
-    }
+    wait_for_pixels(b, &home, "home did not bring the first view back").await;
 
     // A click in the middle picks the model there.
     b.eval(
@@ -240,32 +231,33 @@ async fn the_viewer_flies_refines_picks_and_says_when_the_cluster_stops() {
         WAIT,
     )
     .await;
+    wait_for_pixels(
+        b,
+        &start,
+        "home again did not show the view the flight began at",
+    )
+    .await;
     let before = b.eval("return dray.view").await;
     b.press('p').await;
     b.wait_for(
         "the path played and refined",
         &format!(
-            "return dray.pathFrames > 0 && dray.playing === null && dray.view !== {before}              && dray.still === true && dray.samples === {max}"
+            "return dray.pathFrames > 0 && dray.playing === null && dray.view !== {before} \
+             && dray.still === true && dray.samples === {max}"
         ),
         SHOW,
         WAIT,
     )
     .await;
-    let deadline = std::time::Instant::now() + WAIT;
-    while b.eval(CANVAS_HASH).await != end {
-        assert!(
-            std::time::Instant::now() < deadline,
-            "playing the flight did not end where it did"
-        );
-        tokio::time::sleep(Duration::from_millis(50)).await;
-    }
+    wait_for_pixels(b, &end, "playing the flight did not end where it did").await;
     // A path file that is not one is refused with its name and key.
     let bad = tempfile::Builder::new().suffix(".toml").tempfile().unwrap();
     std::fs::write(bad.path(), "frames = 0\n").unwrap();
     b.choose_file("open", bad.path()).await;
+    let name = bad.path().file_name().unwrap().to_str().unwrap();
     b.wait_for(
         "the bad path refused",
-        "return dray.errors.some((e) => e.includes('frames: 0 is not'))",
+        &format!("return dray.errors.some((e) => e.includes('{name}: frames: 0 is not'))"),
         SHOW,
         WAIT,
     )
@@ -310,21 +302,9 @@ async fn the_viewer_refuses_a_page_without_the_token_and_other_sites() {
         return;
     };
     let plant = dray_testkit::plant_db(20_000, 4, 2048);
-    let db = plant.path.display().to_string();
     let web = format!("127.0.0.1:{}", dray_testkit::browser::free_tcp_port());
     let dray = Path::new(env!("CARGO_BIN_EXE_dray"));
-    let args = [
-        "view",
-        &db,
-        "--clients",
-        "1",
-        "--web",
-        &web,
-        "--width",
-        "64",
-        "--height",
-        "48",
-    ];
+    let args = view_args(&plant.path, 1, &web, (64, 48));
     let viewer = Viewer::start(dray, &args, WAIT);
     let bare = viewer.url.split('?').next().unwrap().to_string();
     browser.client.goto(&bare).await.expect("the page loads");

@@ -175,6 +175,25 @@ impl Drop for Browser {
     }
 }
 
+/// `dray view DB --clients N --web WEB --width W --height H`'s arguments.
+pub fn view_args(db: &Path, clients: u32, web: &str, (width, height): (u32, u32)) -> Vec<String> {
+    let db = db.display().to_string();
+    [
+        "view",
+        &db,
+        "--clients",
+        &clients.to_string(),
+        "--web",
+        web,
+        "--width",
+        &width.to_string(),
+        "--height",
+        &height.to_string(),
+    ]
+    .map(String::from)
+    .to_vec()
+}
+
 /// A loopback TCP port free now.
 pub fn free_tcp_port() -> u16 {
     std::net::TcpListener::bind("127.0.0.1:0")
@@ -196,7 +215,7 @@ pub struct Viewer {
 impl Viewer {
     /// Starts `dray ARGS` and waits (up to `timeout`) for its `viewer:`
     /// line.
-    pub fn start(dray: &Path, args: &[&str], timeout: Duration) -> Viewer {
+    pub fn start<S: AsRef<std::ffi::OsStr>>(dray: &Path, args: &[S], timeout: Duration) -> Viewer {
         let mut child = Command::new(dray)
             .args(args)
             .stdin(Stdio::null())

@@ -945,6 +945,17 @@ mod tests {
         assert_eq!(s.stopped_early.as_deref(), Some("shutdown: operator"));
     }
 
+    /// A step of `d` straight ahead.
+    fn forward(d: f32) -> ViewInput {
+        ViewInput::Fly {
+            forward: d,
+            right: 0.0,
+            up: 0.0,
+            yaw_deg: 0.0,
+            pitch_deg: 0.0,
+        }
+    }
+
     #[test]
     fn a_recording_follows_the_view_and_the_page_hears_of_it() {
         let mut o = opts(1, 2);
@@ -953,13 +964,6 @@ mod tests {
         let mut d = display(o);
         let mut out = Vec::new();
         let t0 = Instant::now();
-        let fly = ViewInput::Fly {
-            forward: 1.0,
-            right: 0.0,
-            up: 0.0,
-            yaw_deg: 0.0,
-            pitch_deg: 0.0,
-        };
         d.input(vec![ViewInput::Record(true)], t0, &mut out);
         assert!(
             out.iter()
@@ -967,7 +971,11 @@ mod tests {
             "{out:?}"
         );
         out.clear();
-        d.input(vec![fly.clone()], t0 + Duration::from_millis(450), &mut out);
+        d.input(
+            vec![forward(1.0)],
+            t0 + Duration::from_millis(450),
+            &mut out,
+        );
         out.clear();
         d.input(
             vec![ViewInput::Record(false)],
@@ -1024,17 +1032,7 @@ mod tests {
         assert_eq!(samples, [0, 1, 2], "refined to max_samples, then it rests");
         // Frame k's pixels are k (see `tile`): the page sees their mean.
         assert_eq!(images, [0, 1, 1], "0, (0+1)/2, (0+1+2)/3, rounded");
-        d.input(
-            vec![ViewInput::Fly {
-                forward: 1.0,
-                right: 0.0,
-                up: 0.0,
-                yaw_deg: 0.0,
-                pitch_deg: 0.0,
-            }],
-            Instant::now(),
-            &mut out,
-        );
+        d.input(vec![forward(1.0)], Instant::now(), &mut out);
         let want = [0.0, 0.0, -4.0];
         assert!(
             matches!(&out[..], [Out::Camera(u)] if u.seq == 3 && u.sample == 0 && u.camera.eye == want),
