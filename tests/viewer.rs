@@ -218,11 +218,14 @@ async fn the_viewer_flies_refines_picks_and_says_when_the_cluster_stops() {
     )
     .expect("the recording is a camera path");
     assert!(path.keyframes.len() >= 3, "{path:?}");
-    assert!(!b
-        .eval("return dray.status.choices.recording")
-        .await
-        .as_bool()
-        .unwrap());
+    // The status (a watch) and the recording (an event) come separately.
+    b.wait_for(
+        "the page hears the recording stopped",
+        "return dray.status.choices.recording === false",
+        SHOW,
+        WAIT,
+    )
+    .await;
     b.press(HOME_KEY).await;
     b.wait_for(
         "home again",
