@@ -284,6 +284,9 @@ fn run(cli: Cli) -> Result<ExitCode> {
             let opts = RunOptions {
                 clients,
                 isa,
+                // Only the JSON report lists each frame; a long run's
+                // rows are in metrics.csv, not in memory.
+                keep_frame_metrics: json,
                 ..RunOptions::default()
             };
             let run = runtime()?.block_on(dray_actors::nodes::sim(&cfg, &opts))?;

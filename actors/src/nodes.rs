@@ -89,14 +89,29 @@ fn node_err(node: &Name, e: impl std::fmt::Display) -> ClusterError {
 }
 
 /// Choices a command makes on top of the config.
-#[derive(Clone, Debug, Default)]
+#[derive(Clone, Debug)]
 pub struct RunOptions {
     /// Number of clients instead of `clients.count`.
     pub clients: Option<u32>,
     /// Keep every frame's image in the summary (tests compare them).
     pub keep_frames: bool,
+    /// Keep every frame's metrics in the summary (the default; experiments
+    /// read them). Interactive runs never do: they last as long as someone
+    /// flies.
+    pub keep_frame_metrics: bool,
     /// The kernel's instruction set (default: the best this CPU runs).
     pub isa: Option<Isa>,
+}
+
+impl Default for RunOptions {
+    fn default() -> RunOptions {
+        RunOptions {
+            clients: None,
+            keep_frames: false,
+            keep_frame_metrics: true,
+            isa: None,
+        }
+    }
 }
 
 /// What a whole run did.
@@ -276,6 +291,7 @@ fn display_options(cfg: &Config, opts: &RunOptions) -> Result<DisplayOptions, Cl
         // An interactive run writes its metrics, not a file per frame.
         save_frames: cfg.display.save_frames && !interactive(cfg),
         keep_frames: opts.keep_frames,
+        keep_metrics: opts.keep_frame_metrics && !interactive(cfg),
         web,
         samples: cfg.render.samples,
     })

@@ -132,6 +132,7 @@ fn start(frames: usize, ahead: usize, output: Option<std::path::PathBuf>) -> Clu
         output,
         save_frames: true,
         keep_frames: true,
+        keep_metrics: true,
         web: None,
         samples: 1,
         settings: dray_protocol::RenderSettings {

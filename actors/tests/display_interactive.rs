@@ -101,6 +101,7 @@ async fn start() -> Fixture {
         output: None,
         save_frames: false,
         keep_frames: false,
+        keep_metrics: false,
         web: Some(web),
         samples: 1,
     };
@@ -335,7 +336,9 @@ async fn display_interactive_refines_a_still_view_and_a_move_starts_again() {
         .unwrap()
         .unwrap();
     assert!(s.complete && s.stopped_early.is_none());
-    assert!(s.frames.len() >= 6);
+    // An interactive run keeps its sums, not a row per frame.
+    assert!(s.frames_shown >= 6 && s.frames.is_empty());
+    assert_eq!(s.frames_requested, s.frames_shown);
 }
 
 #[tokio::test]

@@ -175,8 +175,11 @@ impl CsvLog {
 /// What a display run showed.
 #[derive(Clone, Debug)]
 pub struct DisplaySummary {
-    /// Per frame, in order.
+    /// Per frame, in order (only when `keep_metrics`; otherwise empty, and
+    /// `metrics.csv` holds them).
     pub frames: Vec<FrameMetrics>,
+    /// Frames shown.
+    pub frames_shown: usize,
     /// The images (only when `keep_frames`).
     pub images: Vec<FrameImage>,
     /// Image width.
@@ -215,6 +218,8 @@ pub struct DisplaySummary {
     pub total_reassigned: u64,
     /// Stall time summed over tiles, milliseconds.
     pub total_stall_ms: f64,
+    /// Frame times summed, milliseconds.
+    total_frame_ms: f64,
     /// Tiles ignored (unknown frame, outside the image, bad sizes).
     pub tiles_ignored: u64,
     /// Tiles that brought no new pixel (reassignment duplicates).
@@ -232,6 +237,7 @@ impl DisplaySummary {
     pub(crate) fn new(width: u32, height: u32, frames_requested: usize) -> DisplaySummary {
         DisplaySummary {
             frames: Vec::new(),
+            frames_shown: 0,
             images: Vec::new(),
             width,
             height,
@@ -251,6 +257,7 @@ impl DisplaySummary {
             cache_hit_rate: 1.0,
             total_reassigned: 0,
             total_stall_ms: 0.0,
+            total_frame_ms: 0.0,
             tiles_ignored: 0,
             duplicate_tiles: 0,
             missing_pixels: 0,
@@ -264,8 +271,9 @@ impl DisplaySummary {
         self.voxels_missing.insert(id)
     }
 
-    /// Adds a shown frame's metrics.
-    pub(crate) fn push(&mut self, m: FrameMetrics) {
+    /// Adds a shown frame's metrics to the run's figures, and keeps them
+    /// if `keep`: a run that goes on for hours keeps only its sums.
+    pub(crate) fn push(&mut self, m: FrameMetrics, keep: bool) {
         // The figures come from a peer (the scheduler): saturating sums.
         self.total_rays = self.total_rays.saturating_add(m.rays);
         self.total_bytes_fetched = self.total_bytes_fetched.saturating_add(m.bytes_fetched);
@@ -278,16 +286,20 @@ impl DisplaySummary {
         self.total_stall_ms += m.stall_ms;
         self.total_link = self.total_link.saturating_add(m.link());
         self.max_frame_ms = self.max_frame_ms.max(m.frame_ms);
-        self.frames.push(m);
+        self.total_frame_ms += m.frame_ms;
+        self.frames_shown += 1;
+        if keep {
+            self.frames.push(m);
+        }
     }
 
     /// Fills the run-wide figures; `seconds` from the first camera to the
     /// last frame shown.
     pub(crate) fn finish(&mut self, seconds: f64) {
-        let n = self.frames.len();
+        let n = self.frames_shown;
         self.seconds = seconds;
         if n > 0 {
-            self.mean_frame_ms = self.frames.iter().map(|m| m.frame_ms).sum::<f64>() / n as f64;
+            self.mean_frame_ms = self.total_frame_ms / n as f64;
         }
         if seconds > 0.0 {
             self.mean_fps = n as f64 / seconds;
@@ -304,7 +316,7 @@ impl DisplaySummary {
     pub fn print_text(&self) -> String {
         let mut s = format!(
             "{} of {} frames of {}x{} in {:.2} s: {:.2} fps (frame time mean {:.1} ms, max {:.1} ms)\n",
-            self.frames.len(),
+            self.frames_shown,
             self.frames_requested,
             self.width,
             self.height,
@@ -359,7 +371,7 @@ impl DisplaySummary {
             "width": self.width,
             "height": self.height,
             "frames_requested": self.frames_requested,
-            "frames_shown": self.frames.len(),
+            "frames_shown": self.frames_shown,
             "complete": self.complete,
             "stopped_early": self.stopped_early,
             "seconds": finite(self.seconds),
@@ -437,5 +449,30 @@ mod tests {
         let none = FrameMetrics::compute(0, &FrameStats::default(), 0.0);
         assert_eq!(none.cache_hit_rate, 1.0);
         assert!(none.fps.is_finite());
+    }
+
+    #[test]
+    fn a_summary_without_rows_has_the_same_figures() {
+        let stats = FrameStats {
+            tiles: 2,
+            rays: 1000,
+            misses: 1,
+            voxels_touched: 4,
+            ..FrameStats::default()
+        };
+        let mut kept = DisplaySummary::new(8, 8, 3);
+        let mut sums = DisplaySummary::new(8, 8, 3);
+        for (frame, ms) in [(0, 10.0), (1, 30.0), (2, 20.0)] {
+            kept.push(FrameMetrics::compute(frame, &stats, ms), true);
+            sums.push(FrameMetrics::compute(frame, &stats, ms), false);
+        }
+        kept.finish(0.06);
+        sums.finish(0.06);
+        assert_eq!((kept.frames.len(), sums.frames.len()), (3, 0));
+        assert_eq!((kept.frames_shown, sums.frames_shown), (3, 3));
+        assert_eq!(kept.mean_frame_ms, 20.0);
+        assert_eq!(kept.print_text(), sums.print_text());
+        assert_eq!(sums.to_json()["frames_shown"], 3);
+        assert_eq!(sums.to_json()["mean_frame_ms"], 20.0);
     }
 }

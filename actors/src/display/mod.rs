@@ -129,6 +129,9 @@ pub struct DisplayOptions {
     pub save_frames: bool,
     /// Keep the images in the summary.
     pub keep_frames: bool,
+    /// Keep each frame's metrics in the summary (its run-wide figures are
+    /// always there; each frame's row is in `metrics.csv` too).
+    pub keep_metrics: bool,
     /// Serve the live web viewer there.
     pub web: Option<std::net::SocketAddr>,
     /// Samples per camera (`render.samples`; 0 counts as 1): each camera

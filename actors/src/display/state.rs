@@ -564,7 +564,7 @@ impl Display {
                 }
             }
         }
-        self.summary.push(m);
+        self.summary.push(m, self.opts.keep_metrics);
     }
 
     /// Adds an interactive frame to the samples of its view (the first
@@ -622,10 +622,10 @@ impl Display {
             if let Some(why) = &stopped {
                 info!("interactive run over: {why}");
             }
-            self.summary.frames_requested = self.summary.frames.len();
+            self.summary.frames_requested = self.summary.frames_shown;
             self.summary.complete = true;
         } else {
-            self.summary.complete = self.summary.frames.len() as u64 == self.total();
+            self.summary.complete = self.summary.frames_shown as u64 == self.total();
         }
         if !self.summary.complete {
             self.summary.stopped_early = stopped.or(Some("stopped".into()));
@@ -681,6 +681,7 @@ mod tests {
             output: None,
             save_frames: false,
             keep_frames: false,
+            keep_metrics: true,
             web: None,
             samples: 1,
         }
