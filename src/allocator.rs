@@ -12,17 +12,16 @@
 //!
 //! Mimalloc only where the voxels stay put ([`streaming`] switches a
 //! process whose voxels come and go to glibc and the pool, without huge
-//! pages). A node
-//! that streams voxels allocates a blob in one thread (a store's reader,
-//! the transport, a client's decoder) and frees it in another, all the
-//! time; mimalloc keeps such memory in the allocating thread's pages, and
-//! `dray sim` with 8 clients and 0.5 MB caches grew without bound (1.2 GB
-//! after 5 s, 3.5 GB after 90 s) where glibc and the pool hold it flat
-//! (`scripts/soak`). With huge pages, each fresh fault would also
-//! clear a whole 2 MiB page (`clear_page_erms`), making cold clients
-//! slower (`experiments/latency-hiding.toml`). The experiment runner stays
-//! on mimalloc without huge pages: its `render` engine must trace as
-//! `dray render` does, and its in-process runs are short.
+//! pages). A node that streams voxels allocates a blob in one thread (a
+//! store's reader, the transport, a client's decoder) and frees it in
+//! another, all the time; mimalloc keeps such memory in the allocating
+//! thread's pages, and `dray sim` with 8 clients and 0.5 MB caches grew
+//! without bound (1.2 GB after 5 s, 3.5 GB after 90 s) where glibc and the
+//! pool hold it flat (`scripts/soak`). With huge pages, each fresh fault
+//! would also clear a whole 2 MiB page (`clear_page_erms`), making cold
+//! clients slower (`experiments/latency-hiding.toml`). The experiment
+//! runner stays on mimalloc without huge pages: its `render` engine must
+//! trace as `dray render` does, and its in-process runs are short.
 //!
 //! Why not mimalloc for preprocessing: its memory budget (`--memory-mb`)
 //! holds for the whole process, and mimalloc's huge pages (committed

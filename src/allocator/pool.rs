@@ -5,7 +5,7 @@
 //! a few hundred KiB that live from moments (decoding's temporaries) to
 //! minutes (a cached voxel). In glibc's heap, among small blocks, the free
 //! space they leave is cut up and the heap keeps growing (`scripts/soak`:
-//! 80 → 170 MB in 5 minutes with 30–90 MB in use); giving each its own
+//! 80 → 170 MB in 7 minutes with 30–95 MB in use); giving each its own
 //! mapping keeps it flat but runs three times slower; mimalloc and
 //! jemalloc grow faster still (`docs/benchmarks.md`). Here every block
 //! is rounded up to one of 28 sizes and an idle block is handed to the
@@ -316,7 +316,7 @@ mod tests {
             .flat_map(|&n| (0..3).map(move |_| n))
             .map(|n| (pool.alloc(n), n))
             .map(|(b, n)| {
-                assert!(b.zeroed && !b.ptr.is_null() && b.ptr as usize % PAGE == 0);
+                assert!(b.zeroed && !b.ptr.is_null() && (b.ptr as usize).is_multiple_of(PAGE));
                 // SAFETY: a fresh block of n bytes.
                 unsafe { std::slice::from_raw_parts_mut(b.ptr, n).fill(n as u8) };
                 (b.ptr, n)
