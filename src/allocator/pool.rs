@@ -17,7 +17,8 @@
 use std::ptr;
 use std::sync::{Mutex, MutexGuard};
 
-/// The page size these blocks are made of (x86-64 and aarch64 Linux).
+/// The page size these blocks are made of (x86-64 Linux's; where pages
+/// are larger, giving pages back is refused and they stay in memory).
 pub const PAGE: usize = 4096;
 /// The smallest block served here.
 pub const MIN: usize = PAGE;
