@@ -284,8 +284,8 @@ fn run(cli: Cli) -> Result<ExitCode> {
             let opts = RunOptions {
                 clients,
                 isa,
-                // Only the JSON report lists each frame; a long run's
-                // rows are in metrics.csv, not in memory.
+                // Only the JSON report lists each frame; a long run keeps
+                // its sums (and writes its rows to display.output, if set).
                 keep_frame_metrics: json,
                 ..RunOptions::default()
             };

@@ -176,7 +176,7 @@ impl CsvLog {
 #[derive(Clone, Debug)]
 pub struct DisplaySummary {
     /// Per frame, in order (only when `keep_metrics`; otherwise empty, and
-    /// `metrics.csv` holds them).
+    /// only `metrics.csv` has them, when there is an output).
     pub frames: Vec<FrameMetrics>,
     /// Frames shown.
     pub frames_shown: usize,

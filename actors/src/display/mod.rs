@@ -130,7 +130,8 @@ pub struct DisplayOptions {
     /// Keep the images in the summary.
     pub keep_frames: bool,
     /// Keep each frame's metrics in the summary (its run-wide figures are
-    /// always there; each frame's row is in `metrics.csv` too).
+    /// always there; with an `output`, so is each frame's row in
+    /// `metrics.csv`).
     pub keep_metrics: bool,
     /// Serve the live web viewer there.
     pub web: Option<std::net::SocketAddr>,

@@ -946,6 +946,14 @@ mod tests {
         assert_eq!(s.stopped_early.as_deref(), Some("shutdown: operator"));
     }
 
+    /// An interactive display with a viewer (one camera, two frames ahead).
+    fn interactive_display() -> Display {
+        let mut o = opts(1, 2);
+        o.interactive = true;
+        o.web = Some(([127, 0, 0, 1], 0).into());
+        display(o)
+    }
+
     /// A step of `d` straight ahead.
     fn forward(d: f32) -> ViewInput {
         ViewInput::Fly {
@@ -959,10 +967,7 @@ mod tests {
 
     #[test]
     fn a_recording_follows_the_view_and_the_page_hears_of_it() {
-        let mut o = opts(1, 2);
-        o.interactive = true;
-        o.web = Some(([127, 0, 0, 1], 0).into());
-        let mut d = display(o);
+        let mut d = interactive_display();
         let mut out = Vec::new();
         let t0 = Instant::now();
         d.input(vec![ViewInput::Record(true)], t0, &mut out);
@@ -1002,10 +1007,7 @@ mod tests {
 
     #[test]
     fn an_interactive_view_is_refined_then_rests_and_an_input_starts_again() {
-        let mut o = opts(1, 2);
-        o.interactive = true;
-        o.web = Some(([127, 0, 0, 1], 0).into());
-        let mut d = display(o);
+        let mut d = interactive_display();
         let mut out = Vec::new();
         d.advance(&mut out);
         let mut samples = Vec::new();
