@@ -63,6 +63,19 @@ pub(crate) enum Command {
         /// The database directory.
         db: PathBuf,
     },
+    /// Cut a database into N shards, DIR/shard-0 to DIR/shard-(N-1), each
+    /// holding the voxels whose id is I modulo N (and the whole manifest),
+    /// for stores on hosts of their own (`stores[I].database`).
+    Shard {
+        /// The database directory.
+        db: PathBuf,
+        /// How many shards.
+        #[arg(long = "of", value_name = "N")]
+        count: u32,
+        /// Where to write the shard directories.
+        #[arg(long, value_name = "DIR")]
+        out: PathBuf,
+    },
     /// Summarize a database.
     Info {
         /// The database directory.
@@ -131,7 +144,9 @@ pub(crate) enum Command {
         json: bool,
     },
     /// Run one node of a config (for a cluster across machines, from the
-    /// same config file on each).
+    /// same config file on each). Without --role, the node is the one of
+    /// this process's rank under Slurm, an MPI launcher or Kubernetes
+    /// (`launch.ranks` in the config; docs/deploy.md).
     Node {
         /// The cluster config (TOML), the same file on every machine.
         #[arg(long)]
@@ -140,12 +155,13 @@ pub(crate) enum Command {
         /// this directory, instead of the config's `display.output`.
         #[arg(long, value_name = "DIR")]
         save_frames: Option<PathBuf>,
-        /// scheduler, store, client or display.
+        /// scheduler, store, client or display [default: from the
+        /// launcher's rank].
         #[arg(long, value_parser = parse_role)]
-        role: Role,
-        /// Which store or client.
-        #[arg(long, default_value_t = 0)]
-        index: usize,
+        role: Option<Role>,
+        /// Which store or client [default: 0 with --role].
+        #[arg(long, requires = "role")]
+        index: Option<usize>,
         /// Kernel instruction set (clients).
         #[arg(long, value_parser = parse_isa)]
         isa: Option<Isa>,

@@ -11,6 +11,7 @@ use dray_actors::display::path::CameraPath;
 use dray_actors::nodes::{NodeOutcome, RunOptions};
 use dray_protocol::{CameraField, Role};
 use dray_scene::db::info::DbInfo;
+use dray_scene::db::shard::write_shards;
 use dray_scene::db::verify::verify;
 use dray_scene::db::Database;
 use dray_scene::generate::{generate_plant, PlantParams};
@@ -163,6 +164,13 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 report.triangles
             );
         }
+        Command::Shard { db, count, out } => {
+            let db = Database::open(&db)?;
+            let dirs = write_shards(&db, count, &out, &Progress::auto())?;
+            for (i, d) in dirs.iter().enumerate() {
+                println!("shard {i}/{count}: {}", d.display());
+            }
+        }
         Command::Info { db, json } => {
             let info = DbInfo::from_manifest(&Database::open(&db)?.manifest);
             if json {
@@ -232,6 +240,26 @@ fn run(cli: Cli) -> Result<ExitCode> {
         } => {
             let mut cfg = dray_config::Config::load(&config)?;
             save_frames_to(&mut cfg, save_frames);
+            let (role, index) = match role {
+                Some(role) => (role, index.unwrap_or(0)),
+                None => {
+                    let env = |var: &str| std::env::var(var).ok();
+                    let node = cfg
+                        .node_from_launcher(&env)
+                        .with_context(|| format!("{}", config.display()))?;
+                    let l = &node.launch;
+                    tracing::info!(
+                        launcher = l.launcher,
+                        rank = l.rank,
+                        from = l.rank_from,
+                        role = %node.role,
+                        index = node.index,
+                        hosts = ?cfg.launch.hosts,
+                        "node from the launcher's rank"
+                    );
+                    (node.role, node.index)
+                }
+            };
             if !(role == Role::Client && cfg.clients.preload) {
                 allocator::streaming();
             }

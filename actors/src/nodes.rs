@@ -219,19 +219,43 @@ pub fn frame_cameras(cfg: &Config) -> Result<Vec<Camera>, ClusterError> {
 }
 
 /// Checks what the config points at before anything starts, so that a
-/// mistake stops startup with the key's name: the database (everywhere
-/// but on a client, which fetches everything) and the camera path (the
-/// display's). `role` None: every node of the config.
-pub fn preflight(cfg: &Config, role: Option<Role>) -> Result<(), ClusterError> {
-    if matches!(role, None | Some(Role::Store)) {
-        dray_scene::db::Database::open(&cfg.scene.database).map_err(|e| {
+/// mistake stops startup with the key's name: each store's database (and
+/// that it holds the store's shard) and the camera path (the display's).
+/// `node` None: every node of the config; else (role, index).
+pub fn preflight(cfg: &Config, node: Option<(Role, usize)>) -> Result<(), ClusterError> {
+    let stores = match node {
+        None => 0..cfg.stores.len(),
+        Some((Role::Store, i)) => i..i + 1,
+        Some(_) => 0..0,
+    };
+    let shards = cfg.shards()?;
+    // Stores often share a database: each is opened once.
+    let mut opened: std::collections::HashMap<&std::path::Path, dray_scene::db::Database> =
+        std::collections::HashMap::new();
+    for i in stores {
+        let key = match cfg.stores.get(i).and_then(|s| s.database.as_ref()) {
+            Some(_) => format!("stores[{i}].database"),
+            None => "scene.database".into(),
+        };
+        let Some(&(index, count)) = shards.get(i) else {
+            continue;
+        };
+        let bad = |problem| {
             ClusterError::Config(dray_config::ConfigError::Invalid {
-                key: "scene.database".into(),
-                problem: e.to_string(),
+                key: key.clone(),
+                problem,
             })
-        })?;
+        };
+        let path = cfg.store_database(i);
+        let db = match opened.entry(path) {
+            std::collections::hash_map::Entry::Occupied(e) => e.into_mut(),
+            std::collections::hash_map::Entry::Vacant(e) => {
+                e.insert(dray_scene::db::Database::open(path).map_err(|e| bad(e.to_string()))?)
+            }
+        };
+        crate::store::check_holds(db, Shard { index, count }).map_err(bad)?;
     }
-    if matches!(role, None | Some(Role::Display)) {
+    if matches!(node, None | Some((Role::Display, _))) {
         frame_cameras(cfg)?;
     }
     Ok(())
@@ -264,18 +288,7 @@ fn client_options(cfg: &Config, opts: &RunOptions) -> Result<ClientOptions, Clus
 pub const WEB_TOKEN_ENV: &str = "DRAY_WEB_TOKEN";
 
 fn display_options(cfg: &Config, opts: &RunOptions) -> Result<DisplayOptions, ClusterError> {
-    let web = match &cfg.display.web {
-        Some(w) => {
-            Some(
-                w.parse::<SocketAddr>()
-                    .map_err(|_| dray_config::ConfigError::Invalid {
-                        key: "display.web".into(),
-                        problem: format!("{w:?} is not IP:PORT"),
-                    })?,
-            )
-        }
-        None => None,
-    };
+    let web = cfg.web_addr()?;
     Ok(DisplayOptions {
         assigner: names::assigner(),
         scheduler: names::scheduler(),
@@ -370,7 +383,7 @@ fn spawn_scheduler(cfg: &Config, boxes: [Mailbox; 3]) -> Result<SchedulerTasks, 
 fn store_options(cfg: &Config, i: usize) -> Result<StoreOptions, ClusterError> {
     let (index, count) = cfg.shards()?[i];
     Ok(StoreOptions {
-        database: cfg.scene.database.clone(),
+        database: cfg.store_database(i).to_path_buf(),
         shard: Shard { index, count },
         max_concurrent: cfg.stores[i].max_concurrent as usize,
         disk: store_disk(cfg),
@@ -609,7 +622,7 @@ pub async fn node(
         }
         _ => {}
     }
-    preflight(cfg, Some(role))?;
+    preflight(cfg, Some((role, index)))?;
     let bus = Bus::new(me.clone(), role);
     let identity = NodeIdentity::load(&cfg.certs.dir, &me).map_err(|e| {
         node_err(
@@ -642,15 +655,7 @@ pub async fn node(
         Role::Scheduler => cfg.scheduler_addr()?,
         Role::Display => cfg.display_addr()?,
         Role::Store => cfg.store_addrs()?[index],
-        _ => SocketAddr::new(
-            cfg.clients.bind.parse().map_err(|_| {
-                ClusterError::Config(dray_config::ConfigError::Invalid {
-                    key: "clients.bind".into(),
-                    problem: "not an IP address".into(),
-                })
-            })?,
-            0,
-        ),
+        _ => SocketAddr::new(cfg.client_bind()?, 0),
     };
     // Mailboxes before the transport: nothing may arrive for an actor that
     // does not exist yet.

@@ -93,6 +93,9 @@ pub enum LaunchError {
     /// No random token for the web viewer.
     #[error("cannot make the web viewer's token: {0}")]
     Token(std::io::Error),
+    /// An address of the config cannot be resolved.
+    #[error(transparent)]
+    Config(#[from] dray_config::ConfigError),
 }
 
 /// The signals that stop a cluster as Ctrl-C does.
@@ -310,7 +313,7 @@ pub async fn cluster(
     let display = procs.len();
     procs.push(proc_for("display", None));
     // The viewer's token is made here, so that its address can be printed.
-    let viewer_url = match &cfg.display.web {
+    let viewer_url = match cfg.web_addr()? {
         Some(addr) => {
             let token = crate::display::web::wire::new_token().map_err(LaunchError::Token)?;
             procs[display]

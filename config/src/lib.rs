@@ -48,9 +48,14 @@ pub fn check_shards(shards: &[(u32, u32)]) -> Result<(), String> {
     Ok(())
 }
 
+pub mod address;
+pub mod launch;
+
+pub use address::NodeAddress;
+use dray_protocol::Role;
 pub use dray_protocol::{Compression, Reflective};
 use serde::Deserialize;
-use std::net::SocketAddr;
+use std::net::{IpAddr, Ipv4Addr, Ipv6Addr, SocketAddr};
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
@@ -145,6 +150,28 @@ pub struct Config {
     pub links: LinksConfig,
     /// The cluster certificates.
     pub certs: CertsConfig,
+    /// How a launcher's ranks map to nodes, and the hosts `{host:N}` names.
+    #[serde(default)]
+    pub launch: LaunchConfig,
+}
+
+/// What `dray node` does when a launcher (Slurm, MPI, Kubernetes) starts
+/// it without `--role` ([`launch`]).
+#[derive(Clone, Debug, Default, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct LaunchConfig {
+    /// The node each rank runs, in rank order (e.g. `["scheduler",
+    /// "display", "store-0", "client-0"]`): any of the config's nodes, each
+    /// at most once. Default: every node, in [`Config::node_names`] order.
+    #[serde(default)]
+    pub ranks: Option<Vec<String>>,
+    /// The hosts that `{host:N}` in an address names, when the launcher
+    /// gives none (Slurm gives its node list; this list wins over it).
+    #[serde(default)]
+    pub hosts: Vec<String>,
+    /// Where `hosts` came from when a launcher gave them (its variable).
+    #[serde(skip)]
+    pub hosts_from: Option<&'static str>,
 }
 
 /// The scene.
@@ -388,6 +415,11 @@ pub struct StoreConfig {
     /// Most voxel reads at once.
     #[serde(default = "default_store_concurrency")]
     pub max_concurrent: u32,
+    /// The database this store reads, instead of `scene.database`: a
+    /// shard of it made by `dray shard` (holding at least the voxels of
+    /// `shard`), or a copy on the store's host.
+    #[serde(default)]
+    pub database: Option<PathBuf>,
 }
 
 fn default_store_concurrency() -> u32 {
@@ -535,9 +567,11 @@ pub struct ClientsConfig {
     /// `"none"` (more CPU than LZ4 even over loopback: more packets).
     #[serde(default)]
     pub pixel_compression: Compression,
-    /// Host the clients bind (they dial out; the port is picked).
-    #[serde(default = "default_bind")]
-    pub bind: String,
+    /// IP the clients bind (they dial out; the port is picked). Default:
+    /// every interface (`0.0.0.0`, or `::` where the scheduler's address
+    /// is IPv6).
+    #[serde(default)]
+    pub bind: Option<String>,
     /// A voxel no store serves intact: `"fail"` ends the run, `"skip"`
     /// renders it as empty.
     #[serde(default)]
@@ -564,9 +598,6 @@ fn default_inflight() -> u32 {
 }
 fn default_tiles_ahead() -> u32 {
     1
-}
-fn default_bind() -> String {
-    "127.0.0.1".into()
 }
 
 /// The slowest link or disk a config may model, Mbit/s: a QUIC datagram
@@ -715,13 +746,8 @@ pub struct CertsConfig {
     pub dir: PathBuf,
 }
 
-fn parse_addr(key: &str, s: &str) -> Result<SocketAddr, ConfigError> {
-    s.parse::<SocketAddr>().map_err(|_| {
-        invalid(
-            key,
-            format!("{s:?} is not an address of the form IP:PORT (e.g. 127.0.0.1:7000)"),
-        )
-    })
+fn parse_addr(key: &str, s: &str) -> Result<NodeAddress, ConfigError> {
+    NodeAddress::parse(s).map_err(|m| invalid(key, m))
 }
 
 impl Config {
@@ -746,6 +772,11 @@ impl Config {
             }
         };
         rel(&mut cfg.scene.database);
+        for s in &mut cfg.stores {
+            if let Some(p) = s.database.as_mut() {
+                rel(p);
+            }
+        }
         rel(&mut cfg.certs.dir);
         if let Some(p) = cfg.render.camera_path.as_mut() {
             rel(p);
@@ -870,7 +901,7 @@ impl Config {
             return Err(invalid("certs.dir", "is empty"));
         }
 
-        let mut addrs: Vec<(String, SocketAddr)> = vec![
+        let mut addrs: Vec<(String, NodeAddress)> = vec![
             (
                 "scheduler.address".into(),
                 parse_addr("scheduler.address", &self.scheduler.address)?,
@@ -902,15 +933,60 @@ impl Config {
                     "must be at least 1",
                 ));
             }
+            if s.database
+                .as_ref()
+                .is_some_and(|d| d.as_os_str().is_empty())
+            {
+                return Err(invalid(format!("stores[{i}].database"), "is empty"));
+            }
         }
         self.shards()?;
-        for (i, (ka, a)) in addrs.iter().enumerate() {
+        for (i, h) in self.launch.hosts.iter().enumerate() {
+            if h.parse::<std::net::IpAddr>().is_err() && !address::is_host_name(h) {
+                return Err(invalid(
+                    format!("launch.hosts[{i}]"),
+                    format!("{h:?} is neither an IP nor a host name"),
+                ));
+            }
+        }
+        // Where the hosts are not known yet (the launcher gives them), two
+        // addresses are the same only if their text is.
+        let mut hosts_known = Vec::with_capacity(addrs.len());
+        for (key, a) in &addrs {
             if a.port() == 0 {
-                return Err(invalid(ka.clone(), "port 0: other nodes could not find it"));
+                return Err(invalid(
+                    key.clone(),
+                    "port 0: other nodes could not find it",
+                ));
             }
-            if let Some((kb, _)) = addrs[..i].iter().find(|(_, b)| b == a) {
-                return Err(invalid(ka.clone(), format!("{a} is also {kb}")));
+            let host = if self.launch.hosts.is_empty() {
+                None
+            } else {
+                Some(
+                    a.host(
+                        &self.launch.hosts,
+                        self.launch.hosts_from.unwrap_or("launch.hosts"),
+                    )
+                    .map_err(|m| invalid(key.clone(), m))?,
+                )
+            };
+            hosts_known.push(host);
+        }
+        for (i, (ka, a)) in addrs.iter().enumerate() {
+            let same = |j: usize| match (&hosts_known[i], &hosts_known[j]) {
+                (Some(x), Some(y)) => x == y && a.port() == addrs[j].1.port(),
+                _ => *a == addrs[j].1,
+            };
+            if let Some(j) = (0..i).find(|&j| same(j)) {
+                return Err(invalid(
+                    ka.clone(),
+                    format!("{} is also {}", self.address_text(ka), addrs[j].0),
+                ));
             }
+        }
+        if let Some(ranks) = &self.launch.ranks {
+            launch::check_ranks(ranks, &self.node_names())
+                .map_err(|m| invalid("launch.ranks", m))?;
         }
 
         let c = &self.clients;
@@ -964,10 +1040,10 @@ impl Config {
                 format!("{most} is over 64"),
             ));
         }
-        if c.bind.parse::<std::net::IpAddr>().is_err() {
+        if let Some(bind) = c.bind.as_ref().filter(|b| b.parse::<IpAddr>().is_err()) {
             return Err(invalid(
                 "clients.bind",
-                format!("{:?} is not an IP address", c.bind),
+                format!("{bind:?} is not an IP address"),
             ));
         }
         self.links.client_store.validate("links.client_store")?;
@@ -986,23 +1062,133 @@ impl Config {
         Ok(())
     }
 
+    /// The text of the address at `key` (`scheduler.address`,
+    /// `display.address`, `display.web`, `stores[I].address`).
+    fn address_text(&self, key: &str) -> &str {
+        match key {
+            "scheduler.address" => &self.scheduler.address,
+            "display.address" => &self.display.address,
+            "display.web" => self.display.web.as_deref().unwrap_or(""),
+            _ => key
+                .strip_prefix("stores[")
+                .and_then(|k| k.strip_suffix("].address"))
+                .and_then(|i| i.parse::<usize>().ok())
+                .and_then(|i| self.stores.get(i))
+                .map_or("", |s| &s.address),
+        }
+    }
+
+    /// The socket address at `key`: host templates filled from
+    /// `launch.hosts`, a host name looked up.
+    fn resolve(&self, key: &str) -> Result<SocketAddr, ConfigError> {
+        parse_addr(key, self.address_text(key))?
+            .resolve(
+                &self.launch.hosts,
+                self.launch.hosts_from.unwrap_or("launch.hosts"),
+            )
+            .map_err(|m| invalid(key, m))
+    }
+
     /// The scheduler's address.
     pub fn scheduler_addr(&self) -> Result<SocketAddr, ConfigError> {
-        parse_addr("scheduler.address", &self.scheduler.address)
+        self.resolve("scheduler.address")
     }
 
     /// The display's address.
     pub fn display_addr(&self) -> Result<SocketAddr, ConfigError> {
-        parse_addr("display.address", &self.display.address)
+        self.resolve("display.address")
+    }
+
+    /// The web viewer's address, if there is one.
+    pub fn web_addr(&self) -> Result<Option<SocketAddr>, ConfigError> {
+        self.display
+            .web
+            .as_ref()
+            .map(|_| self.resolve("display.web"))
+            .transpose()
     }
 
     /// Each store's address, in order.
     pub fn store_addrs(&self) -> Result<Vec<SocketAddr>, ConfigError> {
-        self.stores
-            .iter()
-            .enumerate()
-            .map(|(i, s)| parse_addr(&format!("stores[{i}].address"), &s.address))
+        (0..self.stores.len())
+            .map(|i| self.resolve(&format!("stores[{i}].address")))
             .collect()
+    }
+
+    /// The IP clients bind: `clients.bind`, or every interface of the
+    /// scheduler address's family.
+    pub fn client_bind(&self) -> Result<IpAddr, ConfigError> {
+        match &self.clients.bind {
+            Some(b) => b
+                .parse()
+                .map_err(|_| invalid("clients.bind", format!("{b:?} is not an IP address"))),
+            None if self.scheduler_addr()?.is_ipv6() => Ok(Ipv6Addr::UNSPECIFIED.into()),
+            None => Ok(Ipv4Addr::UNSPECIFIED.into()),
+        }
+    }
+
+    /// The database store `i` reads: its `database`, or `scene.database`.
+    pub fn store_database(&self, i: usize) -> &Path {
+        self.stores
+            .get(i)
+            .and_then(|s| s.database.as_deref())
+            .unwrap_or(&self.scene.database)
+    }
+
+    /// The node each launcher rank runs: `launch.ranks`, or every node in
+    /// [`Config::node_names`] order.
+    pub fn rank_nodes(&self) -> Vec<String> {
+        self.launch
+            .ranks
+            .clone()
+            .unwrap_or_else(|| self.node_names())
+    }
+
+    /// Which node a launcher's process is (role and index), from its rank;
+    /// fills `launch.hosts` from the launcher's host list when the config
+    /// lists none. `env` reads the environment. The error says what is
+    /// missing or inconsistent.
+    pub fn node_from_launcher(
+        &mut self,
+        env: &dyn Fn(&str) -> Option<String>,
+    ) -> Result<LaunchedNode, ConfigError> {
+        let bad = |m: String| invalid("launch", m);
+        let l = launch::detect(env)
+            .map_err(bad)?
+            .ok_or_else(|| bad(launch::NO_LAUNCHER.into()))?;
+        let ranks = self.rank_nodes();
+        if let Some((var, n)) = l.size.filter(|&(_, n)| n != ranks.len()) {
+            return Err(bad(format!(
+                "{} started {n} processes ({var}), but the config has {} ranks \
+                 (launch.ranks, or every node): start exactly {}",
+                l.launcher,
+                ranks.len(),
+                ranks.len()
+            )));
+        }
+        let node = ranks.get(l.rank).ok_or_else(|| {
+            bad(format!(
+                "rank {} ({}) has no node: the config has {} ranks (launch.ranks, or every node)",
+                l.rank,
+                l.rank_from,
+                ranks.len()
+            ))
+        })?;
+        let (role, index) =
+            node_role(node).ok_or_else(|| bad(format!("{node:?} is not a node name")))?;
+        if self.launch.hosts.is_empty() {
+            if let Some((var, hosts)) = launch::hosts(env).map_err(bad)? {
+                self.launch.hosts = hosts;
+                self.launch.hosts_from = Some(var);
+                // The addresses' templates are checked against the list now.
+                self.validate()?;
+            }
+        }
+        Ok(LaunchedNode {
+            role,
+            index,
+            launch: l,
+        })
     }
 
     /// The client cache budget in bytes.
@@ -1052,6 +1238,39 @@ impl Config {
     }
 }
 
+/// A node a launcher started ([`Config::node_from_launcher`]).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct LaunchedNode {
+    /// Its role.
+    pub role: Role,
+    /// Which store or client (0 for the scheduler and the display).
+    pub index: usize,
+    /// What the launcher said.
+    pub launch: launch::Launch,
+}
+
+/// The role and index of a node name (`scheduler`, `display`, `store-I`,
+/// `client-I`).
+pub fn node_role(name: &str) -> Option<(Role, usize)> {
+    match name {
+        "scheduler" => return Some((Role::Scheduler, 0)),
+        "display" => return Some((Role::Display, 0)),
+        _ => {}
+    }
+    let (role, i) = name.rsplit_once('-')?;
+    let role = match role {
+        "store" => Role::Store,
+        "client" => Role::Client,
+        _ => return None,
+    };
+    // One spelling per node: no sign, no leading zeros.
+    if i.is_empty() || (i.len() > 1 && i.starts_with('0')) || !i.bytes().all(|b| b.is_ascii_digit())
+    {
+        return None;
+    }
+    Some((role, i.parse().ok()?))
+}
+
 /// The dotted keys whose values are paths; [`Config::load`] takes each
 /// relative one relative to the config file's directory. A program that
 /// builds a config as a TOML table (the experiment runner) resolves these
@@ -1062,3 +1281,20 @@ pub const PATH_KEYS: [&str; 4] = [
     "display.output",
     "certs.dir",
 ];
+
+/// Whether a dotted key's value is a path: one of [`PATH_KEYS`] or a
+/// store's `stores[I].database`.
+pub fn is_path_key(key: &str) -> bool {
+    PATH_KEYS.contains(&key)
+        || key
+            .strip_prefix("stores[")
+            .and_then(|k| k.strip_suffix("].database"))
+            .is_some_and(|i| i.parse::<usize>().is_ok())
+}
+
+/// Every path key of a config with `stores` stores.
+pub fn path_keys(stores: usize) -> Vec<String> {
+    let mut keys: Vec<String> = PATH_KEYS.iter().map(|k| k.to_string()).collect();
+    keys.extend((0..stores).map(|i| format!("stores[{i}].database")));
+    keys
+}

@@ -110,7 +110,7 @@ fn mistakes_name_their_key() {
     assert_names(
         broken("address = \"127.0.0.1:7411\"", "address = \"localhost\""),
         "stores[1].address",
-        "IP:PORT",
+        "HOST:PORT",
     );
     assert_names(
         broken(

@@ -7,7 +7,7 @@
 //! directory, as `dray node` processes read it.
 
 use crate::error::ExperimentError;
-use dray_config::{Config, PATH_KEYS};
+use dray_config::{is_path_key, path_keys, Config};
 use std::path::Path;
 
 /// Where an override comes from; errors name it.
@@ -46,7 +46,7 @@ impl Override {
     /// taken relative to the file's directory.
     pub fn from_file(origin: Origin, key: &str, value: &toml::Value, dir: &Path) -> Override {
         let value = match value {
-            toml::Value::String(s) if PATH_KEYS.contains(&key) => path_value(&dir.join(s)),
+            toml::Value::String(s) if is_path_key(key) => path_value(&dir.join(s)),
             v => v.clone(),
         };
         Override::new(origin, key, value)
@@ -93,10 +93,10 @@ impl BaseConfig {
             .parse()
             .map_err(|e| bad(&format!("{}: {e}", file.display())))?;
         let dir = file.parent().unwrap_or(Path::new("/"));
-        for key in PATH_KEYS {
-            if let Ok(Some(toml::Value::String(p))) = get(&table, key) {
+        for key in path_keys(config.stores.len()) {
+            if let Ok(Some(toml::Value::String(p))) = get(&table, &key) {
                 let absolute = path_value(&dir.join(p));
-                set(&mut table, key, Some(absolute)).map_err(|e| bad(&e))?;
+                set(&mut table, &key, Some(absolute)).map_err(|e| bad(&e))?;
             }
         }
         Ok(BaseConfig { config, table })
@@ -295,7 +295,7 @@ mod tests {
         assert!(steps("a[x]").is_err());
     }
 
-    /// `PATH_KEYS` lists every path `Config::load` resolves: the table
+    /// `path_keys` lists every path `Config::load` resolves: the table
     /// built here validates to the config the file loads to.
     #[test]
     fn the_table_means_what_the_file_meant() {

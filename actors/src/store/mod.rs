@@ -118,6 +118,28 @@ pub(crate) fn clip(mut s: String) -> String {
     s
 }
 
+/// Opens the database a store serves `shard` from: a whole database, or
+/// a shard of one (`dray shard`) that holds every voxel of `shard`.
+pub fn open_database(path: &std::path::Path, shard: Shard) -> Result<Database, String> {
+    let db = Database::open(path).map_err(|e| e.to_string())?;
+    check_holds(&db, shard)?;
+    Ok(db)
+}
+
+/// Whether `db` holds every voxel of `shard`; the problem in words if not.
+pub fn check_holds(db: &Database, shard: Shard) -> Result<(), String> {
+    let path = db.dir();
+    match db.shard() {
+        Some(s) if !s.covers(shard.index, shard.count) => Err(format!(
+            "{} is shard {s} of a database, which does not hold the voxels of shard {shard} \
+             that this store serves (a store serving I/N needs the shard I/N, or one of \
+             M shards where M divides N and I mod M is its index)",
+            path.display()
+        )),
+        _ => Ok(()),
+    }
+}
+
 /// Runs a store until it gets [`Message::Shutdown`] or its mailbox closes;
 /// each blob read takes at least what `opts.disk` says (the real read
 /// overlaps the modelled time).
@@ -129,8 +151,9 @@ pub async fn run_store(mut mb: Mailbox, opts: StoreOptions) -> Result<StoreSumma
         message,
     };
     let path = opts.database.clone();
+    let shard = opts.shard;
     let (db, manifest) = tokio::task::spawn_blocking(move || {
-        let db = Database::open(&path).map_err(|e| e.to_string())?;
+        let db = open_database(&path, shard)?;
         let manifest_path = db.dir().join(MANIFEST_FILE);
         let bytes = std::fs::read(&manifest_path)
             .map_err(|e| format!("{}: {e}", manifest_path.display()))?;

@@ -6,11 +6,13 @@
 
 pub mod info;
 pub mod manifest;
+pub mod shard;
 pub mod verify;
 
 use crate::geometry::{Aabb, Hit, Ray};
 use crate::voxel::{Voxel, VoxelError};
 use manifest::{BspNode, Manifest, ManifestError, VoxelEntry, MANIFEST_FILE, VOXELS_FILE};
+use shard::ShardOf;
 use std::fs::File;
 use std::io::Read;
 use std::path::{Path, PathBuf};
@@ -35,11 +37,13 @@ pub enum DbError {
     Entry { id: u32, message: String },
 }
 
-/// An open voxel database.
+/// An open voxel database, whole or a shard of one ([`shard`]).
 pub struct Database {
     dir: PathBuf,
     pub manifest: Manifest,
     voxels: File,
+    /// A shard's residue class and each held blob's offset in its file.
+    shard: Option<(ShardOf, Vec<u64>)>,
 }
 
 impl Database {
@@ -86,27 +90,44 @@ impl Database {
         file.read_to_end(&mut bytes).map_err(io(&manifest_path))?;
         let manifest = Manifest::decode(&bytes).map_err(bad_manifest)?;
 
+        let shard = shard::read_shard_file(dir)?.map(|s| (s, shard::local_offsets(&manifest, s)));
+        let expected = match &shard {
+            Some((_, (_, len))) => *len,
+            None => manifest.voxel_bytes(),
+        };
         let voxels_path = dir.join(VOXELS_FILE);
         let voxels = File::open(&voxels_path).map_err(io(&voxels_path))?;
         let len = voxels.metadata().map_err(io(&voxels_path))?.len();
-        if len != manifest.voxel_bytes() {
+        if len != expected {
+            let of = match &shard {
+                Some((s, _)) => format!(" for shard {s}"),
+                None => String::new(),
+            };
             return Err(DbError::Layout {
                 path: voxels_path,
-                message: format!(
-                    "{len} bytes, the manifest expects {}",
-                    manifest.voxel_bytes()
-                ),
+                message: format!("{len} bytes, the manifest expects {expected}{of}"),
             });
         }
         Ok(Database {
             dir: dir.to_path_buf(),
             manifest,
             voxels,
+            shard: shard.map(|(s, (offsets, _))| (s, offsets)),
         })
     }
 
     pub fn dir(&self) -> &Path {
         &self.dir
+    }
+
+    /// Which shard this database is, if it is one.
+    pub fn shard(&self) -> Option<ShardOf> {
+        self.shard.as_ref().map(|(s, _)| *s)
+    }
+
+    /// Whether this database holds voxel `id`'s blob (a shard holds some).
+    pub fn holds(&self, id: u32) -> bool {
+        (id as usize) < self.manifest.voxels.len() && self.shard().is_none_or(|s| s.holds(id))
     }
 
     pub fn entry(&self, id: u32) -> Result<&VoxelEntry, DbError> {
@@ -132,8 +153,23 @@ impl Database {
     /// The manifest's length of bytes at voxel `id`'s offset.
     fn read_unchecked(&self, id: u32) -> Result<Vec<u8>, DbError> {
         let entry = self.entry(id)?;
+        let offset = match &self.shard {
+            None => entry.offset,
+            Some((s, _)) if !s.holds(id) => {
+                return Err(DbError::Entry {
+                    id,
+                    message: format!(
+                        "not in this database: {} is shard {s} (voxels whose id is {} modulo {})",
+                        self.dir.display(),
+                        s.index,
+                        s.count
+                    ),
+                })
+            }
+            Some((s, offsets)) => offsets[(id / s.count) as usize],
+        };
         let mut blob = vec![0u8; entry.compressed_bytes as usize];
-        read_exact_at(&self.voxels, &mut blob, entry.offset).map_err(|source| DbError::Io {
+        read_exact_at(&self.voxels, &mut blob, offset).map_err(|source| DbError::Io {
             path: self.dir.join(VOXELS_FILE),
             source,
         })?;

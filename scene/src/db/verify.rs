@@ -30,7 +30,9 @@ impl VerifyReport {
 pub fn verify(db: &Database, progress: &Progress) -> VerifyReport {
     let m = &db.manifest;
     let mut report = VerifyReport {
-        voxels: m.voxels.len(),
+        voxels: (0..m.voxels.len() as u32)
+            .filter(|&id| db.holds(id))
+            .count(),
         ..Default::default()
     };
     // The cell of each voxel, from the BSP.
@@ -55,9 +57,11 @@ pub fn verify(db: &Database, progress: &Progress) -> VerifyReport {
 
     let ids = m.input_triangles;
     let seen: Vec<AtomicU64> = (0..ids.div_ceil(64)).map(|_| AtomicU64::new(0)).collect();
-    progress.stage("verifying voxels", m.voxels.len() as u64);
+    progress.stage("verifying voxels", report.voxels as u64);
+    // A shard checks the voxels it holds.
     let mut problems: Vec<(u32, String)> = (0..m.voxels.len() as u32)
         .into_par_iter()
+        .filter(|&id| db.holds(id))
         .filter_map(|id| {
             let result = check_voxel(db, id, cells[id as usize], &seen);
             progress.advance(1);
@@ -70,13 +74,16 @@ pub fn verify(db: &Database, progress: &Progress) -> VerifyReport {
         .into_iter()
         .map(|(id, msg)| format!("voxel {id}: {msg}"))
         .collect();
-    report.triangles = m.voxels.iter().map(|v| v.triangles as u64).sum();
+    report.triangles = (m.voxels.iter().enumerate())
+        .filter(|(id, _)| db.holds(*id as u32))
+        .map(|(_, v)| v.triangles as u64)
+        .sum();
 
     let missing: u64 = (0..ids)
         .filter(|&i| seen[(i / 64) as usize].load(Ordering::Relaxed) & (1 << (i % 64)) == 0)
         .count() as u64;
     // Missing ids are only meaningful when every voxel could be read.
-    if missing > 0 && report.problems.is_empty() {
+    if missing > 0 && report.problems.is_empty() && db.shard().is_none() {
         report.problems.push(format!(
             "manifest: {missing} of {ids} input triangles are stored in no voxel"
         ));
