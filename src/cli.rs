@@ -63,9 +63,11 @@ pub(crate) enum Command {
         /// The database directory.
         db: PathBuf,
     },
-    /// Cut a database into N shards, DIR/shard-0 to DIR/shard-(N-1), each
-    /// holding the voxels whose id is I modulo N (and the whole manifest),
-    /// for stores on hosts of their own (`stores[I].database`).
+    /// Cut a database into shards, for stores on hosts of their own.
+    ///
+    /// Writes DIR/shard-0 to DIR/shard-(N-1), each holding the voxels whose
+    /// id is I modulo N and the whole manifest; a store serving shard I/N
+    /// reads it with `stores[I].database`.
     Shard {
         /// The database directory.
         db: PathBuf,
@@ -144,9 +146,11 @@ pub(crate) enum Command {
         json: bool,
     },
     /// Run one node of a config (for a cluster across machines, from the
-    /// same config file on each). Without --role, the node is the one of
-    /// this process's rank under Slurm, an MPI launcher or Kubernetes
-    /// (`launch.ranks` in the config; docs/deploy.md).
+    /// same config file on each).
+    ///
+    /// Without --role, the node is the one of this process's rank under
+    /// Slurm, an MPI launcher or Kubernetes (`launch.ranks` in the config;
+    /// docs/deploy.md).
     Node {
         /// The cluster config (TOML), the same file on every machine.
         #[arg(long)]
