@@ -553,3 +553,120 @@ fn frames_is_a_count_and_save_frames_a_directory() {
         text(&out)
     );
 }
+
+/// `dray node` without `--role` takes its node from a launcher's rank; with
+/// none, or one that does not fit the config, it says what is missing and
+/// starts nothing.
+#[test]
+fn a_node_without_role_names_the_launcher_variables_it_looked_for() {
+    let config = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/examples/local.toml");
+    let node = |vars: &[(&str, &str)]| {
+        let mut cmd = Command::new(env!("CARGO_BIN_EXE_dray"));
+        cmd.args(["node", "--config", s(&config)])
+            .env("RUST_LOG", "warn");
+        for var in [
+            "SLURM_PROCID",
+            "SLURM_NTASKS",
+            "OMPI_COMM_WORLD_RANK",
+            "PMIX_RANK",
+            "PMI_RANK",
+            "JOB_COMPLETION_INDEX",
+            "KUBERNETES_SERVICE_HOST",
+        ] {
+            cmd.env_remove(var);
+        }
+        cmd.envs(vars.iter().copied());
+        cmd.output().unwrap()
+    };
+    let out = node(&[]);
+    assert!(!out.status.success());
+    assert!(
+        text(&out).contains("no --role given and no launcher's rank in the environment")
+            && text(&out).contains("SLURM_PROCID"),
+        "{}",
+        text(&out)
+    );
+    let out = node(&[("SLURM_PROCID", "2"), ("SLURM_NTASKS", "3")]);
+    assert!(
+        text(&out).contains("Slurm started 3 processes (SLURM_NTASKS), but the config has 8 ranks"),
+        "{}",
+        text(&out)
+    );
+    let out = node(&[("PMI_RANK", "one")]);
+    assert!(
+        text(&out).contains("PMI_RANK=\"one\" is not a whole number"),
+        "{}",
+        text(&out)
+    );
+    let out = dray(&["node", "--config", s(&config), "--index", "1"]);
+    assert!(text(&out).contains("--role"), "{}", text(&out));
+}
+
+#[test]
+fn shard_cuts_a_database_and_a_store_of_another_shard_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let model = dir.path().join("plant.ply");
+    let db = dir.path().join("db");
+    assert!(dray(&[
+        "generate",
+        "plant",
+        "--triangles",
+        "10000",
+        "--out",
+        s(&model)
+    ])
+    .status
+    .success());
+    assert!(dray(&[
+        "preprocess",
+        s(&model),
+        "--out",
+        s(&db),
+        "--max-triangles",
+        "256"
+    ])
+    .status
+    .success());
+    let shards = dir.path().join("shards");
+    let out = dray(&["shard", s(&db), "--of", "2", "--out", s(&shards)]);
+    assert!(out.status.success(), "{}", text(&out));
+    assert!(text(&out).contains("shard 1/2:"), "{}", text(&out));
+    let out = dray(&["verify", s(&shards.join("shard-1"))]);
+    assert!(out.status.success(), "{}", text(&out));
+    // Again: nothing is written over.
+    let out = dray(&["shard", s(&db), "--of", "2", "--out", s(&shards)]);
+    assert!(
+        !out.status.success() && text(&out).contains("exists"),
+        "{}",
+        text(&out)
+    );
+    // A store serving 0/2 from shard 1 of 2 stops before it starts.
+    let local = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/examples/local.toml");
+    let text_cfg = std::fs::read_to_string(local)
+        .unwrap()
+        .replace("../../data/plant.vdb", s(&db))
+        .replace(
+            "address = \"127.0.0.1:7410\"",
+            &format!(
+                "address = \"127.0.0.1:7410\"\ndatabase = \"{}\"",
+                s(&shards.join("shard-1"))
+            ),
+        );
+    let cfg = dir.path().join("c.toml");
+    std::fs::write(&cfg, text_cfg).unwrap();
+    let out = dray(&[
+        "node",
+        "--config",
+        s(&cfg),
+        "--role",
+        "store",
+        "--index",
+        "0",
+    ]);
+    assert!(!out.status.success());
+    assert!(
+        text(&out).contains("stores[0].database:") && text(&out).contains("is shard 1/2"),
+        "{}",
+        text(&out)
+    );
+}

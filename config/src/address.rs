@@ -85,7 +85,7 @@ impl NodeAddress {
                     )
                 } else {
                     format!(
-                        "{{host:{n}}} names host {n} (from 0), but {from} has {} hosts: {}",
+                        "{{host:{n}}} names host {n} (from 0), but {from} lists {}: {}",
                         hosts.len(),
                         hosts.join(",")
                     )
@@ -210,7 +210,7 @@ mod tests {
         let e = far
             .resolve(&hosts(&["a", "b"]), "SLURM_JOB_NODELIST")
             .unwrap_err();
-        assert!(e.contains("SLURM_JOB_NODELIST has 2 hosts: a,b"), "{e}");
+        assert!(e.contains("SLURM_JOB_NODELIST lists 2: a,b"), "{e}");
         let e = far.resolve(&[], "launch.hosts").unwrap_err();
         assert!(e.contains("set launch.hosts"), "{e}");
     }

@@ -127,7 +127,7 @@ fn launch_mistakes_are_named() {
     // Host 2 of a list of two.
     let e = bad("[launch]\nhosts = [\"a\", \"b\"]\n");
     assert!(
-        e.starts_with("stores[1].address:") && e.contains("launch.hosts has 2 hosts"),
+        e.starts_with("stores[1].address:") && e.contains("launch.hosts lists 2: a,b"),
         "{e}"
     );
     // Two nodes on one host and port, once the templates are filled.
