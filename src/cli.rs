@@ -166,6 +166,10 @@ pub(crate) enum Command {
         /// Which store or client [default: 0 with --role].
         #[arg(long, requires = "role")]
         index: Option<usize>,
+        /// Print the node's name (e.g. `store-1`) and exit: for a
+        /// launcher's script that prepares the node's files.
+        #[arg(long)]
+        print_node: bool,
         /// Kernel instruction set (clients).
         #[arg(long, value_parser = parse_isa)]
         isa: Option<Isa>,

@@ -236,6 +236,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
             save_frames,
             role,
             index,
+            print_node,
             isa,
         } => {
             let mut cfg = dray_config::Config::load(&config)?;
@@ -260,6 +261,15 @@ fn run(cli: Cli) -> Result<ExitCode> {
                     (node.role, node.index)
                 }
             };
+            if print_node {
+                let name = dray_actors::nodes::node_name(role, index)
+                    .map_err(|m| anyhow::anyhow!("{m}"))?;
+                if !cfg.node_names().contains(&name.to_string()) {
+                    bail!("{}: {name} is not a node of this config", config.display());
+                }
+                println!("{name}");
+                return Ok(ExitCode::SUCCESS);
+            }
             if !(role == Role::Client && cfg.clients.preload) {
                 allocator::streaming();
             }

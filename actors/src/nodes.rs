@@ -32,10 +32,10 @@ use crate::scheduler::{
 use crate::settings::{wire_camera, wire_settings};
 use crate::store::{run_store, StoreDisk, StoreOptions, StoreSummary};
 use crate::{ActorError, Shard};
-use dray_config::{Config, LinkConfig};
+use dray_config::{Config, LinkConfig, Listener};
 use dray_protocol::{Address, Camera, Message, Name, Role, Shutdown};
 use dray_runtime::certs::NodeIdentity;
-use dray_runtime::quic::{QuicError, QuicTransport};
+use dray_runtime::quic::{DialTarget, QuicError, QuicTransport};
 use dray_runtime::relay::{shared_link, RelayShaping, UdpRelay};
 use dray_runtime::shaping::SharedShaper;
 use dray_runtime::{Bus, InProcNet, LinkShape, Mailbox, NodeLink};
@@ -561,6 +561,34 @@ fn loopback_like(addr: SocketAddr) -> SocketAddr {
     SocketAddr::new(ip, 0)
 }
 
+/// How long a node waits for its own address's host name to resolve.
+const LOOKUP_PATIENCE: Duration = Duration::from_secs(120);
+
+/// Looks `target` up, again and again for up to [`LOOKUP_PATIENCE`],
+/// saying every 10 s that it is still waiting; `key` names it.
+async fn resolve_waiting(target: &DialTarget, key: &str) -> Result<SocketAddr, String> {
+    let start = tokio::time::Instant::now();
+    let mut said = start;
+    loop {
+        match target.resolve().await {
+            Ok(a) => return Ok(a),
+            Err(e) if start.elapsed() >= LOOKUP_PATIENCE => {
+                return Err(format!(
+                    "{key}: {e} (waited {}s)",
+                    LOOKUP_PATIENCE.as_secs()
+                ))
+            }
+            Err(e) => {
+                if said.elapsed() >= Duration::from_secs(10) {
+                    warn!(%key, error = %e, waited_s = start.elapsed().as_secs(), "still waiting for the name to resolve");
+                    said = tokio::time::Instant::now();
+                }
+                tokio::time::sleep(Duration::from_millis(500)).await;
+            }
+        }
+    }
+}
+
 /// A QUIC transport and the relays its shaped dials go through.
 struct Links {
     transport: std::sync::Arc<QuicTransport>,
@@ -571,8 +599,13 @@ struct Links {
 }
 
 impl Links {
-    async fn dial(&mut self, peer: Name, addr: SocketAddr, l: &LinkConfig) -> Result<(), String> {
+    async fn dial(&mut self, peer: Name, target: DialTarget, l: &LinkConfig) -> Result<(), String> {
         let target = if l.is_shaped() || self.downlink.is_some() {
+            // A relay forwards to one address: the name is looked up once.
+            let addr = target
+                .resolve()
+                .await
+                .map_err(|e| format!("relay to {peer}: {e}"))?;
             // The relay runs on this machine, whatever the peer's.
             let shaping = RelayShaping {
                 to_upstream: shape(l),
@@ -585,9 +618,9 @@ impl Links {
                 .map_err(|e| format!("relay to {peer}: {e}"))?;
             let a = relay.local_addr();
             self._relays.push(relay);
-            a
+            DialTarget::Addr(a)
         } else {
-            addr
+            target
         };
         self.transport.connect(peer.clone(), target);
         self.dialed.push(peer);
@@ -651,11 +684,21 @@ pub async fn node(
                 node_err(&me, format!("{what} {addr}: {e}"))
             }
         };
+    // A host name may not resolve yet where a launcher starts every node
+    // at once (a Kubernetes pod's name appears once the pod runs); a
+    // client looks the scheduler up to bind the same address family.
+    let own = match role {
+        Role::Display => Listener::Display,
+        Role::Store => Listener::Store(index),
+        _ => Listener::Scheduler,
+    };
+    let (host, port) = cfg.host_port(own)?;
+    let resolved = resolve_waiting(&DialTarget::new(&host, port), &own.key())
+        .await
+        .map_err(|m| node_err(&me, m))?;
     let listen = match role {
-        Role::Scheduler => cfg.scheduler_addr()?,
-        Role::Display => cfg.display_addr()?,
-        Role::Store => cfg.store_addrs()?[index],
-        _ => SocketAddr::new(cfg.client_bind()?, 0),
+        Role::Scheduler | Role::Display | Role::Store => resolved,
+        _ => SocketAddr::new(cfg.client_bind(resolved)?, 0),
     };
     // Mailboxes before the transport: nothing may arrive for an actor that
     // does not exist yet.
@@ -706,19 +749,16 @@ pub async fn node(
             .map_err(|e| bind_err(listen, "uplink relay on", &e, Some(&e)))?;
         links._relays.push(relay);
     }
-    let stores = cfg.store_addrs()?;
     let unshaped = LinkConfig::default();
     let dial_stores = |l: &LinkConfig| {
-        stores
-            .iter()
-            .enumerate()
-            .map(|(i, a)| (names::store_node(i), *a, *l))
+        (0..cfg.stores.len())
+            .map(|i| (names::store_node(i), Listener::Store(i), *l))
             .collect::<Vec<_>>()
     };
-    let dials: Vec<(Name, SocketAddr, LinkConfig)> = match role {
+    let dials: Vec<(Name, Listener, LinkConfig)> = match role {
         Role::Scheduler => dial_stores(&unshaped),
         Role::Display => {
-            let mut v = vec![(name("scheduler"), cfg.scheduler_addr()?, cfg.links.display)];
+            let mut v = vec![(name("scheduler"), Listener::Scheduler, cfg.links.display)];
             v.extend(dial_stores(&unshaped));
             v
         }
@@ -726,12 +766,12 @@ pub async fn node(
             let mut v = vec![
                 (
                     name("scheduler"),
-                    cfg.scheduler_addr()?,
+                    Listener::Scheduler,
                     cfg.links.client_scheduler,
                 ),
                 (
                     name("display"),
-                    cfg.display_addr()?,
+                    Listener::Display,
                     cfg.links.client_scheduler,
                 ),
             ];
@@ -740,9 +780,10 @@ pub async fn node(
         }
         _ => Vec::new(),
     };
-    for (peer, addr, l) in dials {
+    for (peer, listener, l) in dials {
+        let (host, port) = cfg.host_port(listener)?;
         links
-            .dial(peer, addr, &l)
+            .dial(peer, DialTarget::new(&host, port), &l)
             .await
             .map_err(|m| node_err(&me, m))?;
     }

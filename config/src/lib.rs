@@ -1089,6 +1089,20 @@ impl Config {
             .map_err(|m| invalid(key, m))
     }
 
+    /// Where `node` listens as host and port, host templates filled but a
+    /// name not looked up (a dialer looks it up before each dial).
+    pub fn host_port(&self, node: Listener) -> Result<(String, u16), ConfigError> {
+        let key = node.key();
+        let a = parse_addr(&key, self.address_text(&key))?;
+        let host = a
+            .host(
+                &self.launch.hosts,
+                self.launch.hosts_from.unwrap_or("launch.hosts"),
+            )
+            .map_err(|m| invalid(key, m))?;
+        Ok((host, a.port()))
+    }
+
     /// The scheduler's address.
     pub fn scheduler_addr(&self) -> Result<SocketAddr, ConfigError> {
         self.resolve("scheduler.address")
@@ -1116,13 +1130,13 @@ impl Config {
     }
 
     /// The IP clients bind: `clients.bind`, or every interface of the
-    /// scheduler address's family.
-    pub fn client_bind(&self) -> Result<IpAddr, ConfigError> {
+    /// family of `scheduler` (the scheduler's address, looked up).
+    pub fn client_bind(&self, scheduler: SocketAddr) -> Result<IpAddr, ConfigError> {
         match &self.clients.bind {
             Some(b) => b
                 .parse()
                 .map_err(|_| invalid("clients.bind", format!("{b:?} is not an IP address"))),
-            None if self.scheduler_addr()?.is_ipv6() => Ok(Ipv6Addr::UNSPECIFIED.into()),
+            None if scheduler.is_ipv6() => Ok(Ipv6Addr::UNSPECIFIED.into()),
             None => Ok(Ipv4Addr::UNSPECIFIED.into()),
         }
     }
@@ -1235,6 +1249,28 @@ impl Config {
         v.extend((0..self.stores.len()).map(|i| format!("store-{i}")));
         v.extend((0..self.clients.count).map(|i| format!("client-{i}")));
         v
+    }
+}
+
+/// A node that listens on an address of the config.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Listener {
+    /// `scheduler.address`.
+    Scheduler,
+    /// `display.address`.
+    Display,
+    /// `stores[I].address`.
+    Store(usize),
+}
+
+impl Listener {
+    /// The dotted key of its address.
+    pub fn key(self) -> String {
+        match self {
+            Listener::Scheduler => "scheduler.address".into(),
+            Listener::Display => "display.address".into(),
+            Listener::Store(i) => format!("stores[{i}].address"),
+        }
     }
 }
 

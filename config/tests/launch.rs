@@ -175,16 +175,18 @@ fn clients_bind_every_interface_of_the_schedulers_family_unless_told() {
     let local = Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/local.toml");
     let text = std::fs::read_to_string(local).unwrap();
     let cfg = Config::parse(&text.replace("bind = \"127.0.0.1\"", "")).unwrap();
-    assert_eq!(cfg.client_bind().unwrap(), std::net::Ipv4Addr::UNSPECIFIED);
-    let v6 = text
-        .replace("bind = \"127.0.0.1\"", "")
-        .replace("\"127.0.0.1:7400\"", "\"[::1]:7400\"");
-    let cfg = Config::parse(&v6).unwrap();
-    assert_eq!(cfg.client_bind().unwrap(), std::net::Ipv6Addr::UNSPECIFIED);
+    let v4 = cfg.scheduler_addr().unwrap();
     assert_eq!(
-        Config::parse(&text).unwrap().client_bind().unwrap(),
-        std::net::Ipv4Addr::LOCALHOST
+        cfg.client_bind(v4).unwrap(),
+        std::net::Ipv4Addr::UNSPECIFIED
     );
+    let v6 = "[::1]:7400".parse().unwrap();
+    assert_eq!(
+        cfg.client_bind(v6).unwrap(),
+        std::net::Ipv6Addr::UNSPECIFIED
+    );
+    let set = Config::parse(&text).unwrap();
+    assert_eq!(set.client_bind(v6).unwrap(), std::net::Ipv4Addr::LOCALHOST);
 }
 
 #[test]

@@ -92,6 +92,9 @@ pub enum QuicError {
     /// The handshake took too long.
     #[error("handshake timed out")]
     Timeout,
+    /// A peer's host name did not resolve.
+    #[error("{0}")]
+    Lookup(String),
     /// A node's announced role is not the one its name gives it.
     #[error("node {node} says it is a {announced}, but its name makes it a {role}")]
     WrongRole {
@@ -242,6 +245,66 @@ impl QuicPeer {
     }
 }
 
+/// Where a peer is dialed: an address, or a host name and port looked up
+/// before every dial, so that a peer restarted at another address (a
+/// rescheduled Kubernetes pod) is found again, and one whose name does not
+/// resolve yet is waited for like one that is not up yet.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum DialTarget {
+    /// A fixed address.
+    Addr(SocketAddr),
+    /// A host name and port.
+    Host {
+        /// The name.
+        name: String,
+        /// The port.
+        port: u16,
+    },
+}
+
+impl DialTarget {
+    /// The target for `host` (an IP or a name) and `port`.
+    pub fn new(host: &str, port: u16) -> DialTarget {
+        match host.parse::<std::net::IpAddr>() {
+            Ok(ip) => DialTarget::Addr(SocketAddr::new(ip, port)),
+            Err(_) => DialTarget::Host {
+                name: host.to_string(),
+                port,
+            },
+        }
+    }
+
+    /// The address to dial now.
+    pub async fn resolve(&self) -> Result<SocketAddr, QuicError> {
+        match self {
+            DialTarget::Addr(a) => Ok(*a),
+            DialTarget::Host { name, port } => {
+                let mut addrs = tokio::net::lookup_host((name.as_str(), *port))
+                    .await
+                    .map_err(|e| QuicError::Lookup(format!("cannot look up host {name:?}: {e}")))?;
+                addrs
+                    .next()
+                    .ok_or_else(|| QuicError::Lookup(format!("host {name:?} has no address")))
+            }
+        }
+    }
+}
+
+impl From<SocketAddr> for DialTarget {
+    fn from(a: SocketAddr) -> DialTarget {
+        DialTarget::Addr(a)
+    }
+}
+
+impl std::fmt::Display for DialTarget {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            DialTarget::Addr(a) => write!(f, "{a}"),
+            DialTarget::Host { name, port } => write!(f, "{name}:{port}"),
+        }
+    }
+}
+
 /// A node's QUIC endpoint: accepts peers, dials peers (redialing with
 /// backoff), and attaches each connection to the bus.
 pub struct QuicTransport {
@@ -330,13 +393,14 @@ impl QuicTransport {
         Ok(self.endpoint.local_addr()?)
     }
 
-    /// Keeps a connection to node `peer` at `addr`: dials now, and redials
-    /// with backoff whenever the connection is lost, until shutdown. Use
-    /// [`Bus::wait_for_peer`] to wait for it.
-    pub fn connect(self: &Arc<Self>, peer: Name, addr: SocketAddr) {
+    /// Keeps a connection to node `peer` at `target`: dials now, and
+    /// redials with backoff whenever the connection is lost, until
+    /// shutdown. Use [`Bus::wait_for_peer`] to wait for it.
+    pub fn connect(self: &Arc<Self>, peer: Name, target: impl Into<DialTarget>) {
+        let target = target.into();
         let this = self.clone();
-        let span = info_span!("quic_dial", node = %self.node, peer = %peer, %addr);
-        tokio::spawn(this.dial_loop(peer, addr).instrument(span));
+        let span = info_span!("quic_dial", node = %self.node, peer = %peer, addr = %target);
+        tokio::spawn(this.dial_loop(peer, target).instrument(span));
     }
 
     /// Why the last dial to `peer` failed, while it is not connected.
@@ -559,11 +623,15 @@ impl QuicTransport {
         }
     }
 
-    async fn dial_loop(self: Arc<Self>, peer: Name, addr: SocketAddr) {
+    async fn dial_loop(self: Arc<Self>, peer: Name, target: DialTarget) {
         let mut backoff = BACKOFF_MIN;
         let mut stop = self.shutdown.subscribe();
         while !self.stopping() {
-            let dialed = self.dial(&peer, addr).await.and_then(|(conn, role)| {
+            let dialed = match target.resolve().await {
+                Ok(addr) => self.dial(&peer, addr).await,
+                Err(e) => Err(e),
+            };
+            let dialed = dialed.and_then(|(conn, role)| {
                 self.attach(&conn, peer.clone(), role).map_err(|live| {
                     let e = QuicError::AlreadyConnected {
                         node: peer.clone(),

@@ -15,7 +15,7 @@ use dray_protocol::{
 use dray_runtime::certs::{
     add_nodes, bundle, init_cluster, init_cluster_in, CertError, ClusterCa, NodeIdentity,
 };
-use dray_runtime::quic::{QuicTransport, STREAM_BULK, STREAM_CONTROL};
+use dray_runtime::quic::{DialTarget, QuicTransport, STREAM_BULK, STREAM_CONTROL};
 use dray_runtime::relay::{shared_link, RelayShaping, UdpRelay};
 use dray_runtime::{Bus, Delivery, LinkShape};
 use quinn::crypto::rustls::QuicClientConfig;
@@ -781,4 +781,72 @@ async fn the_ca_key_stays_apart_bundles_hold_one_node_and_nodes_can_be_added() {
         init_cluster(&certs, &["x"]).is_err(),
         "a CA is never replaced"
     );
+}
+
+/// A peer dialed by host name is looked up before every dial: one whose
+/// name does not resolve is waited for, saying why, and one that restarts
+/// is found again by its name.
+#[tokio::test]
+async fn a_peer_dialed_by_name_is_looked_up_before_each_dial() {
+    let ca = ClusterCa::generate().unwrap();
+    let (a, ta) = node(&ca.issue(&name("node-a")).unwrap(), Role::Tool).await;
+    let nowhere = DialTarget::new("no-such-peer.invalid", 7400);
+    assert!(matches!(nowhere, DialTarget::Host { .. }));
+    ta.connect(name("node-z"), nowhere);
+    let why = guard(async {
+        loop {
+            if let Some(e) = ta.dial_error(&name("node-z")) {
+                return e;
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    assert!(
+        why.contains("cannot look up host \"no-such-peer.invalid\""),
+        "{why}"
+    );
+
+    // `localhost` resolves to the same first address for the listener and
+    // the dialer, whichever family that is.
+    let here = DialTarget::new("localhost", 0).resolve().await.unwrap();
+    let idb = ca.issue(&name("node-b")).unwrap();
+    let start_b = |port: u16| {
+        let idb = idb.clone();
+        async move {
+            let bus = Bus::new(name("node-b"), Role::Tool);
+            let t = QuicTransport::start(&bus, &idb, SocketAddr::new(here.ip(), port))
+                .await
+                .unwrap();
+            (bus, t)
+        }
+    };
+    let (b, tb) = start_b(0).await;
+    let port = tb.local_addr().unwrap().port();
+    assert_eq!(
+        DialTarget::new("127.0.0.1", port),
+        DialTarget::Addr(([127, 0, 0, 1], port).into())
+    );
+    ta.connect(name("node-b"), DialTarget::new("localhost", port));
+    guard(a.wait_for_peer(&name("node-b"))).await;
+    ping_pong(&a, &b, 1).await;
+    // node-b stops and starts again on the same name and port.
+    tb.shutdown().await;
+    drop((b, tb));
+    let (b, tb) = guard(async {
+        loop {
+            let bus = Bus::new(name("node-b"), Role::Tool);
+            match QuicTransport::start(&bus, &idb, SocketAddr::new(here.ip(), port)).await {
+                Ok(t) => return (bus, t),
+                // The old socket may linger a moment.
+                Err(_) => tokio::time::sleep(Duration::from_millis(50)).await,
+            }
+        }
+    })
+    .await;
+    guard(b.wait_for_peer(&name("node-a"))).await;
+    guard(a.wait_for_peer(&name("node-b"))).await;
+    ping_pong(&a, &b, 2).await;
+    ta.shutdown().await;
+    tb.shutdown().await;
 }
