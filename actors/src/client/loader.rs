@@ -15,11 +15,12 @@
 //! display hears of it once ([`VoxelLost`]), and by the
 //! `clients.corrupt_voxel` choice every request for it gets a
 //! [`LoadError`] (the run ends) or an empty voxel (the frame renders
-//! without it). A fetch
-//! whose store goes down is sent again when the store is back
-//! ([`Loader::peer_up`]) or when it times out ([`FETCH_TIMEOUT`]), each
-//! time to the next store that serves the voxel; a prefetch that times out
-//! is dropped.
+//! without it). Fetches go to stores that are up: a fetch whose store
+//! goes down is sent at once to another store serving the voxel
+//! ([`Loader::peer_down`]); where none is up it waits for one to come back
+//! ([`Loader::peer_up`]) or for its time out ([`FETCH_TIMEOUT`]), and is
+//! then asked of the next store that serves the voxel; a prefetch that
+//! times out is dropped.
 
 use super::cache::VoxelCache;
 use super::state::Out;
@@ -32,7 +33,7 @@ use dray_scene::voxel::Voxel;
 use dray_trace::accel::{PreparedVoxel, VoxelRef, VoxelSource};
 use dray_trace::tile::{LoadError, VoxelLoader};
 use futures::future::BoxFuture;
-use std::collections::{HashMap, VecDeque};
+use std::collections::{HashMap, HashSet, VecDeque};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use tokio::sync::{mpsc, oneshot};
@@ -239,6 +240,8 @@ pub(crate) struct Loader {
     unattributed: Fetched,
     policy: LostPolicy,
     lost: HashMap<u32, Lost>,
+    /// Store nodes whose connection is down.
+    down: HashSet<Name>,
 }
 
 impl Loader {
@@ -272,6 +275,7 @@ impl Loader {
             unattributed: Fetched::default(),
             policy,
             lost: HashMap::new(),
+            down: HashSet::new(),
         }
     }
 
@@ -440,8 +444,16 @@ impl Loader {
 
     fn send(&mut self, id: u32, out: &mut Vec<Out>) {
         if let Some(p) = self.pending.get_mut(&id) {
-            let store = self.routes.store_for(id, p.sends).clone();
-            p.sends = p.sends.wrapping_add(1);
+            // The next store serving the voxel that is up, if any is.
+            let owners = u32::try_from(self.routes.owners(id))
+                .unwrap_or(u32::MAX)
+                .max(1);
+            let attempt = (0..owners)
+                .map(|k| p.sends.wrapping_add(k))
+                .find(|&a| !self.down.contains(&self.routes.store_for(id, a).node))
+                .unwrap_or(p.sends);
+            let store = self.routes.store_for(id, attempt).clone();
+            p.sends = attempt.wrapping_add(1);
             if !matches!(p.state, State::InFlight { .. }) {
                 self.inflight += 1;
             }
@@ -611,8 +623,37 @@ impl Loader {
         }
     }
 
+    /// A store node went down: its unanswered fetches go at once to
+    /// another store serving their voxels, where one is up.
+    pub fn peer_down(&mut self, node: &Name, out: &mut Vec<Out>) {
+        if !self.routes.all().any(|a| &a.node == node) {
+            return;
+        }
+        self.down.insert(node.clone());
+        let routes = &self.routes;
+        let down = &self.down;
+        let elsewhere: Vec<u32> = self
+            .pending
+            .iter()
+            .filter(|(&id, p)| {
+                matches!(&p.state, State::InFlight { store, .. } if &store.node == node)
+                    && (0..routes.owners(id) as u32)
+                        .any(|a| !down.contains(&routes.store_for(id, a).node))
+            })
+            .map(|(&id, _)| id)
+            .collect();
+        if !elsewhere.is_empty() {
+            warn!(store = %node, fetches = elsewhere.len(), "store is down: asking the others serving its voxels");
+        }
+        for id in elsewhere {
+            self.stats.retries += 1;
+            self.send(id, out);
+        }
+    }
+
     /// A store node came (back) up: fetches it never answered go again.
     pub fn peer_up(&mut self, node: &Name, out: &mut Vec<Out>) {
+        self.down.remove(node);
         let again: Vec<u32> = self
             .pending
             .iter()
@@ -690,6 +731,71 @@ mod tests {
                 other => panic!("unexpected {other:?}"),
             })
             .collect()
+    }
+
+    #[test]
+    fn a_fetch_from_a_store_that_goes_down_goes_to_its_replica_at_once() {
+        let t = dray_testkit::plant_db(20_000, 3, 512);
+        let manifest = Arc::new(t.db.manifest.clone());
+        let cache = Arc::new(VoxelCache::new(manifest.voxels.len(), u64::MAX));
+        let (a, b, c) = (
+            crate::names::store(0),
+            crate::names::store(1),
+            crate::names::store(2),
+        );
+        let half = |index| Shard { index, count: 2 };
+        // a and b both serve the even voxels; c the odd ones.
+        let routes = StoreRoutes::new(vec![
+            (half(0), a.clone()),
+            (half(0), b.clone()),
+            (half(1), c.clone()),
+        ])
+        .unwrap();
+        let policy = LostPolicy {
+            mode: CorruptVoxel::Fail,
+            report_to: crate::names::display(),
+        };
+        let mut loader = Loader::new(manifest, cache, routes, 8, policy);
+        let mut out = Vec::new();
+        let ask = |loader: &mut Loader, id: u32, out: &mut Vec<Out>| {
+            let (reply, answer) = oneshot::channel();
+            loader.request(LoadRequest { id, reply }, out);
+            answer
+        };
+        let to = |out: &mut Vec<Out>| -> Vec<(Address, u32)> {
+            out.drain(..)
+                .map(|o| match o {
+                    Out::Fetch { to, id } => (to, id),
+                    other => panic!("unexpected {other:?}"),
+                })
+                .collect()
+        };
+        // Voxels 0 and 4 go one to each replica; 1 to c.
+        let _w: Vec<_> = [0, 4, 1].map(|id| ask(&mut loader, id, &mut out)).into();
+        let first = to(&mut out);
+        let on_a: Vec<u32> = first
+            .iter()
+            .filter(|(s, _)| s == &a)
+            .map(|&(_, id)| id)
+            .collect();
+        assert_eq!(on_a.len(), 1, "{first:?}");
+        // a goes down: its fetch goes to b now, not after a time out.
+        loader.peer_down(&a.node, &mut out);
+        assert_eq!(to(&mut out), [(b.clone(), on_a[0])]);
+        // While a is down, new fetches of its voxels go to b.
+        let _w2: Vec<_> = [2, 6, 8].map(|id| ask(&mut loader, id, &mut out)).into();
+        assert!(to(&mut out).iter().all(|(s, _)| s == &b));
+        // c goes down: no other store serves its voxel, which waits.
+        loader.peer_down(&c.node, &mut out);
+        assert!(out.is_empty(), "{out:?}");
+        loader.peer_up(&c.node, &mut out);
+        assert_eq!(to(&mut out), [(c.clone(), 1)]);
+        // a back: fetches spread over both replicas again.
+        loader.peer_up(&a.node, &mut out);
+        let _w3: Vec<_> = [10, 12, 14, 16]
+            .map(|id| ask(&mut loader, id, &mut out))
+            .into();
+        assert!(to(&mut out).iter().any(|(s, _)| s == &a));
     }
 
     #[test]

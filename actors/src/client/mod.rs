@@ -402,7 +402,7 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
                     other => debug!(%actor, kind = other.kind().name(), %from, "ignored"),
                 },
                 Some(Delivery::PeerUp { node, .. }) => c.peer_up(&node, &mut out),
-                Some(Delivery::PeerDown { node, reason }) => c.peer_down(&node, &reason),
+                Some(Delivery::PeerDown { node, reason }) => c.peer_down(&node, &reason, &mut out),
             },
             Some(req) = req_rx.recv() => c.voxel_wanted(req, &mut out),
             Some(d) = decoded_rx.recv() => c.decoded(d, &mut out),

@@ -249,8 +249,10 @@ impl Client {
         self.loader.peer_up(node, out);
     }
 
-    /// A node went down: without the scheduler no work is asked for.
-    pub fn peer_down(&mut self, node: &Name, reason: &str) {
+    /// A node went down: without the scheduler no work is asked for; a
+    /// store's fetches go to another store serving their voxels.
+    pub fn peer_down(&mut self, node: &Name, reason: &str, out: &mut Vec<Out>) {
+        self.loader.peer_down(node, out);
         if *node == self.scheduler.node {
             if reason.starts_with("closed") {
                 info!(actor = %self.actor, %reason, "the scheduler stopped");
@@ -729,8 +731,9 @@ mod tests {
         let mut c = started(&options());
         let (thread, job) = assign(&mut c, 5);
         let scheduler = names::scheduler().node;
-        c.peer_down(&scheduler, "timed out");
         let mut out = Vec::new();
+        c.peer_down(&scheduler, "timed out", &mut out);
+        assert!(out.is_empty(), "{out:?}");
         let tile = finished(thread, job, true, Duration::ZERO);
         c.tiles_finished(vec![tile], &mut LinkBytes::default, &mut out);
         assert!(
