@@ -901,19 +901,16 @@ impl Config {
             return Err(invalid("certs.dir", "is empty"));
         }
 
-        let mut addrs: Vec<(String, NodeAddress)> = vec![
-            (
-                "scheduler.address".into(),
-                parse_addr("scheduler.address", &self.scheduler.address)?,
-            ),
-            (
-                "display.address".into(),
-                parse_addr("display.address", &self.display.address)?,
-            ),
-        ];
-        if let Some(web) = &self.display.web {
-            addrs.push(("display.web".into(), parse_addr("display.web", web)?));
-        }
+        let mut addrs: Vec<(Listener, NodeAddress)> = Vec::new();
+        let mut check = |l: Listener| -> Result<(), ConfigError> {
+            if let Some(text) = self.address_text(l) {
+                addrs.push((l, parse_addr(&l.key(), text)?));
+            }
+            Ok(())
+        };
+        check(Listener::Scheduler)?;
+        check(Listener::Display)?;
+        check(Listener::Web)?;
         if self.stores.is_empty() {
             return Err(invalid("stores", "at least one store is needed"));
         }
@@ -924,9 +921,7 @@ impl Config {
             ));
         }
         for (i, s) in self.stores.iter().enumerate() {
-            let key = format!("stores[{i}].address");
-            let a = parse_addr(&key, &s.address)?;
-            addrs.push((key, a));
+            check(Listener::Store(i))?;
             if s.max_concurrent == 0 {
                 return Err(invalid(
                     format!("stores[{i}].max_concurrent"),
@@ -942,7 +937,7 @@ impl Config {
         }
         self.shards()?;
         for (i, h) in self.launch.hosts.iter().enumerate() {
-            if h.parse::<std::net::IpAddr>().is_err() && !address::is_host_name(h) {
+            if h.parse::<IpAddr>().is_err() && !address::is_host_name(h) {
                 return Err(invalid(
                     format!("launch.hosts[{i}]"),
                     format!("{h:?} is neither an IP nor a host name"),
@@ -952,35 +947,30 @@ impl Config {
         // Where the hosts are not known yet (the launcher gives them), two
         // addresses are the same only if their text is.
         let mut hosts_known = Vec::with_capacity(addrs.len());
-        for (key, a) in &addrs {
+        for (l, a) in &addrs {
             if a.port() == 0 {
-                return Err(invalid(
-                    key.clone(),
-                    "port 0: other nodes could not find it",
-                ));
+                return Err(invalid(l.key(), "port 0: other nodes could not find it"));
             }
             let host = if self.launch.hosts.is_empty() {
                 None
             } else {
                 Some(
-                    a.host(
-                        &self.launch.hosts,
-                        self.launch.hosts_from.unwrap_or("launch.hosts"),
-                    )
-                    .map_err(|m| invalid(key.clone(), m))?,
+                    a.host(&self.launch.hosts, self.hosts_source())
+                        .map_err(|m| invalid(l.key(), m))?,
                 )
             };
             hosts_known.push(host);
         }
-        for (i, (ka, a)) in addrs.iter().enumerate() {
+        for (i, (la, a)) in addrs.iter().enumerate() {
             let same = |j: usize| match (&hosts_known[i], &hosts_known[j]) {
                 (Some(x), Some(y)) => x == y && a.port() == addrs[j].1.port(),
                 _ => *a == addrs[j].1,
             };
             if let Some(j) = (0..i).find(|&j| same(j)) {
+                let text = self.address_text(*la).unwrap_or_default();
                 return Err(invalid(
-                    ka.clone(),
-                    format!("{} is also {}", self.address_text(ka), addrs[j].0),
+                    la.key(),
+                    format!("{text} is also {}", addrs[j].0.key()),
                 ));
             }
         }
@@ -1062,55 +1052,56 @@ impl Config {
         Ok(())
     }
 
-    /// The text of the address at `key` (`scheduler.address`,
-    /// `display.address`, `display.web`, `stores[I].address`).
-    fn address_text(&self, key: &str) -> &str {
-        match key {
-            "scheduler.address" => &self.scheduler.address,
-            "display.address" => &self.display.address,
-            "display.web" => self.display.web.as_deref().unwrap_or(""),
-            _ => key
-                .strip_prefix("stores[")
-                .and_then(|k| k.strip_suffix("].address"))
-                .and_then(|i| i.parse::<usize>().ok())
-                .and_then(|i| self.stores.get(i))
-                .map_or("", |s| &s.address),
+    /// The address `l` listens on, as written (none: no web viewer).
+    fn address_text(&self, l: Listener) -> Option<&str> {
+        match l {
+            Listener::Scheduler => Some(&self.scheduler.address),
+            Listener::Display => Some(&self.display.address),
+            Listener::Web => self.display.web.as_deref(),
+            Listener::Store(i) => self.stores.get(i).map(|s| s.address.as_str()),
         }
     }
 
-    /// The socket address at `key`: host templates filled from
-    /// `launch.hosts`, a host name looked up.
-    fn resolve(&self, key: &str) -> Result<SocketAddr, ConfigError> {
-        parse_addr(key, self.address_text(key))?
-            .resolve(
-                &self.launch.hosts,
-                self.launch.hosts_from.unwrap_or("launch.hosts"),
-            )
-            .map_err(|m| invalid(key, m))
+    /// What `launch.hosts` came from, for errors: the launcher's variable
+    /// or the key.
+    fn hosts_source(&self) -> &'static str {
+        self.launch.hosts_from.unwrap_or("launch.hosts")
     }
 
-    /// Where `node` listens as host and port, host templates filled but a
+    /// Where `l` listens as host and port, host templates filled but a
     /// name not looked up (a dialer looks it up before each dial).
-    pub fn host_port(&self, node: Listener) -> Result<(String, u16), ConfigError> {
-        let key = node.key();
-        let a = parse_addr(&key, self.address_text(&key))?;
+    pub fn host_port(&self, l: Listener) -> Result<(String, u16), ConfigError> {
+        let key = l.key();
+        let text = self
+            .address_text(l)
+            .ok_or_else(|| invalid(key.clone(), "is not set"))?;
+        let a = parse_addr(&key, text)?;
         let host = a
-            .host(
-                &self.launch.hosts,
-                self.launch.hosts_from.unwrap_or("launch.hosts"),
-            )
+            .host(&self.launch.hosts, self.hosts_source())
             .map_err(|m| invalid(key, m))?;
         Ok((host, a.port()))
     }
 
+    /// The socket address `l` listens on: host templates filled from
+    /// `launch.hosts`, a host name looked up.
+    pub fn resolve(&self, l: Listener) -> Result<SocketAddr, ConfigError> {
+        let key = l.key();
+        let text = self
+            .address_text(l)
+            .ok_or_else(|| invalid(key.clone(), "is not set"))?;
+        parse_addr(&key, text)?
+            .resolve(&self.launch.hosts, self.hosts_source())
+            .map_err(|m| invalid(key, m))
+    }
+
     /// The scheduler's address.
     pub fn scheduler_addr(&self) -> Result<SocketAddr, ConfigError> {
-        self.resolve("scheduler.address")
+        self.resolve(Listener::Scheduler)
     }
 
     /// The display's address.
     pub fn display_addr(&self) -> Result<SocketAddr, ConfigError> {
-        self.resolve("display.address")
+        self.resolve(Listener::Display)
     }
 
     /// The web viewer's address, if there is one.
@@ -1118,14 +1109,14 @@ impl Config {
         self.display
             .web
             .as_ref()
-            .map(|_| self.resolve("display.web"))
+            .map(|_| self.resolve(Listener::Web))
             .transpose()
     }
 
     /// Each store's address, in order.
     pub fn store_addrs(&self) -> Result<Vec<SocketAddr>, ConfigError> {
         (0..self.stores.len())
-            .map(|i| self.resolve(&format!("stores[{i}].address")))
+            .map(|i| self.resolve(Listener::Store(i)))
             .collect()
     }
 
@@ -1252,13 +1243,15 @@ impl Config {
     }
 }
 
-/// A node that listens on an address of the config.
+/// What listens on an address of the config.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Listener {
     /// `scheduler.address`.
     Scheduler,
     /// `display.address`.
     Display,
+    /// `display.web`, the web viewer.
+    Web,
     /// `stores[I].address`.
     Store(usize),
 }
@@ -1269,6 +1262,7 @@ impl Listener {
         match self {
             Listener::Scheduler => "scheduler.address".into(),
             Listener::Display => "display.address".into(),
+            Listener::Web => "display.web".into(),
             Listener::Store(i) => format!("stores[{i}].address"),
         }
     }
