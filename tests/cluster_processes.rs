@@ -528,3 +528,60 @@ fn a_port_in_use_fails_once_naming_the_node_the_address_and_the_key() {
     assert!(stderr.contains(&why), "{stderr}");
     drop(dir);
 }
+
+/// `dray node` stops cleanly on SIGTERM and SIGHUP, as launchers and
+/// container runtimes stop it (a node that is PID 1 of a container would
+/// otherwise ignore SIGTERM), whether it is still waiting for its peers or
+/// running: it exits 0, saying which signal stopped it.
+#[test]
+fn a_node_stops_cleanly_on_sigterm_and_sighup_starting_or_running() {
+    let (dir, config) = setup(10, 1);
+    let certs = dir.path().join("certs");
+    let cfg = dray_config::Config::load(&config).unwrap();
+    let names = cfg.node_names();
+    let refs: Vec<&str> = names.iter().map(String::as_str).collect();
+    init_cluster(&certs, &refs).unwrap();
+    let start = |role: &str| {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_dray"))
+            .args(["node", "--config", config.to_str().unwrap(), "--role", role])
+            .env("RUST_LOG", "info")
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        let out = BufReader::new(child.stdout.take().unwrap());
+        (child, out)
+    };
+    let stop = |mut child: Child, signal: &str| {
+        let ok = Command::new("kill")
+            .args([&format!("-{signal}"), &child.id().to_string()])
+            .status()
+            .unwrap()
+            .success();
+        assert!(ok, "kill -{signal}");
+        let deadline = Instant::now() + Duration::from_secs(15);
+        while matches!(child.try_wait(), Ok(None)) {
+            if Instant::now() > deadline {
+                let _ = child.kill();
+                panic!("the node still runs 15 s after {signal}");
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        let out = child.wait_with_output().unwrap();
+        let log = String::from_utf8_lossy(&out.stderr).into_owned();
+        assert!(out.status.success(), "{signal}: {:?}\n{log}", out.status);
+        log
+    };
+    // A store dials nobody: it is ready at once, then runs.
+    let (store, mut out) = start("store");
+    let mut line = String::new();
+    out.read_line(&mut line).unwrap();
+    assert_eq!(line.trim(), "ready store-0");
+    let log = stop(store, "TERM");
+    assert!(log.contains("stopped") && log.contains("SIGTERM"), "{log}");
+    // The display waits for a scheduler that never comes.
+    let (display, _out) = start("display");
+    std::thread::sleep(Duration::from_millis(500));
+    let log = stop(display, "HUP");
+    assert!(log.contains("stopped while starting") && log.contains("SIGHUP"), "{log}");
+}

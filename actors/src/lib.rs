@@ -37,6 +37,7 @@ pub mod names;
 pub mod nodes;
 pub mod scheduler;
 pub mod settings;
+mod signals;
 pub mod store;
 pub mod supervisor;
 

@@ -30,6 +30,7 @@ use crate::scheduler::{
     SchedulerOptions, SchedulerSummary,
 };
 use crate::settings::{wire_camera, wire_settings};
+use crate::signals::StopSignals;
 use crate::store::{run_store, StoreDisk, StoreOptions, StoreSummary};
 use crate::{ActorError, Shard};
 use dray_config::{Config, LinkConfig, Listener};
@@ -495,9 +496,16 @@ pub async fn sim(cfg: &Config, opts: &RunOptions) -> Result<RunSummary, ClusterE
         .map(|mb| tokio::spawn(run_client(mb, copts.clone())))
         .collect();
     info!(clients, stores = stores.len(), "simulated cluster started");
-    // Ctrl-C ends the display (an interactive run has no other end here)
-    // with the summary of what it showed; the others are then stopped.
-    let display = run_display_until(display_box, display_options(cfg, opts)?, ctrl_c()).await;
+    // A stop signal ends the display (an interactive run has no other end
+    // here) with the summary of what it showed; the others are then stopped.
+    let mut signals = StopSignals::new().map_err(|e| ClusterError::Node {
+        node: "sim".into(),
+        message: format!("cannot catch SIGINT, SIGTERM and SIGHUP: {e}"),
+    })?;
+    let stop = async {
+        signals.next().await;
+    };
+    let display = run_display_until(display_box, display_options(cfg, opts)?, stop).await;
     shutdown_all(&control, &every_actor(cfg, clients), "the run is over").await;
     let display = display?;
     let scheduler = joined("scheduler", sched.scheduler).await?;
@@ -520,14 +528,6 @@ pub async fn sim(cfg: &Config, opts: &RunOptions) -> Result<RunSummary, ClusterE
         clients: client_summaries,
         stores: store_summaries,
     })
-}
-
-/// Completes on Ctrl-C (never when the handler cannot be installed).
-async fn ctrl_c() {
-    if let Err(e) = tokio::signal::ctrl_c().await {
-        warn!("Ctrl-C cannot be caught: {e}");
-        std::future::pending::<()>().await;
-    }
 }
 
 /// The node a role and index name.
@@ -643,6 +643,10 @@ pub async fn node(
         node: role.to_string(),
         message: m,
     })?;
+    // Caught from the start: a launcher may stop a node still waiting for
+    // its peers.
+    let mut signals = StopSignals::new()
+        .map_err(|e| node_err(&me, format!("cannot catch SIGINT, SIGTERM and SIGHUP: {e}")))?;
     match role {
         Role::Store if index >= cfg.stores.len() => {
             return Err(node_err(
@@ -693,9 +697,16 @@ pub async fn node(
         _ => Listener::Scheduler,
     };
     let (host, port) = cfg.host_port(own)?;
-    let resolved = resolve_waiting(&DialTarget::new(&host, port), &own.key())
-        .await
-        .map_err(|m| node_err(&me, m))?;
+    let (own_target, own_key) = (DialTarget::new(&host, port), own.key());
+    let resolved = tokio::select! {
+        r = resolve_waiting(&own_target, &own_key) => {
+            r.map_err(|m| node_err(&me, m))?
+        }
+        signal = signals.next() => {
+            warn!(node = %me, signal, "stopped while starting");
+            return Ok(NodeOutcome::Stopped);
+        }
+    };
     let listen = match role {
         Role::Scheduler | Role::Display | Role::Store => resolved,
         _ => SocketAddr::new(cfg.client_bind(resolved)?, 0),
@@ -780,34 +791,49 @@ pub async fn node(
         }
         _ => Vec::new(),
     };
-    for (peer, listener, l) in dials {
-        let (host, port) = cfg.host_port(listener)?;
-        links
-            .dial(peer, DialTarget::new(&host, port), &l)
-            .await
-            .map_err(|m| node_err(&me, m))?;
-    }
-    for peer in links.dialed.clone() {
-        wait_logged(&transport, &bus, &peer)
-            .await
-            .map_err(|e| node_err(&me, e))?;
-    }
-    if role == Role::Display {
-        // The walk starts once every client has joined.
-        wait_for_clients(&bus, clients as usize).await;
+    let connected = async {
+        for (peer, listener, l) in dials {
+            let (host, port) = cfg.host_port(listener)?;
+            links
+                .dial(peer, DialTarget::new(&host, port), &l)
+                .await
+                .map_err(|m| node_err(&me, m))?;
+        }
+        for peer in links.dialed.clone() {
+            wait_logged(&transport, &bus, &peer)
+                .await
+                .map_err(|e| node_err(&me, e))?;
+        }
+        if role == Role::Display {
+            // The walk starts once every client has joined.
+            wait_for_clients(&bus, clients as usize).await;
+        }
+        Ok::<(), ClusterError>(())
+    };
+    tokio::select! {
+        r = connected => r?,
+        signal = signals.next() => {
+            warn!(node = %me, signal, "stopped while starting");
+            transport.shutdown().await;
+            return Ok(NodeOutcome::Stopped);
+        }
     }
     println!("ready {me}");
     use std::io::Write;
     let _ = std::io::stdout().flush();
 
     let outcome = if role == Role::Display {
-        // The display handles Ctrl-C itself (see run_role).
-        run_role(cfg, opts, &bus, boxes, index, clients).await
+        // The display ends cleanly on a stop signal (see run_role).
+        let stop = async {
+            let signal = signals.next().await;
+            info!(node = %me, signal, "stopping");
+        };
+        run_role(cfg, opts, &bus, boxes, index, clients, stop).await
     } else {
         tokio::select! {
-            r = run_role(cfg, opts, &bus, boxes, index, clients) => r,
-            _ = tokio::signal::ctrl_c() => {
-                warn!(node = %me, "interrupted");
+            r = run_role(cfg, opts, &bus, boxes, index, clients, std::future::pending()) => r,
+            signal = signals.next() => {
+                warn!(node = %me, signal, "stopped");
                 Ok(NodeOutcome::Stopped)
             }
         }
@@ -858,6 +884,7 @@ async fn wait_for_clients(bus: &Bus, n: usize) {
     }
 }
 
+/// Runs the node's actors; `stop` ends the display cleanly.
 async fn run_role(
     cfg: &Config,
     opts: &RunOptions,
@@ -865,6 +892,7 @@ async fn run_role(
     boxes: RoleBoxes,
     index: usize,
     clients: u32,
+    stop: impl std::future::Future<Output = ()>,
 ) -> Result<NodeOutcome, ClusterError> {
     match (bus.role(), boxes) {
         (Role::Scheduler, RoleBoxes::Scheduler(b)) => {
@@ -886,9 +914,10 @@ async fn run_role(
         }
         (Role::Display, RoleBoxes::One(mb)) => {
             let control = open_mailbox(bus, "control", 16)?;
-            // Ctrl-C ends the display cleanly (it is how an interactive
-            // run ends): the others are stopped and the summary printed.
-            let summary = run_display_until(mb, display_options(cfg, opts)?, ctrl_c()).await;
+            // A stop signal ends the display cleanly (it is how an
+            // interactive run ends): the others are stopped and the summary
+            // printed.
+            let summary = run_display_until(mb, display_options(cfg, opts)?, stop).await;
             shutdown_all(&control, &every_actor(cfg, clients), "the run is over").await;
             // Give the shutdown messages time to leave before the
             // transport closes.

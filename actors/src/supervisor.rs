@@ -98,33 +98,6 @@ pub enum LaunchError {
     Config(#[from] dray_config::ConfigError),
 }
 
-/// The signals that stop a cluster as Ctrl-C does.
-struct StopSignals {
-    interrupt: tokio::signal::unix::Signal,
-    terminate: tokio::signal::unix::Signal,
-    hangup: tokio::signal::unix::Signal,
-}
-
-impl StopSignals {
-    fn new() -> std::io::Result<StopSignals> {
-        use tokio::signal::unix::{signal, SignalKind};
-        Ok(StopSignals {
-            interrupt: signal(SignalKind::interrupt())?,
-            terminate: signal(SignalKind::terminate())?,
-            hangup: signal(SignalKind::hangup())?,
-        })
-    }
-
-    /// The next one's name.
-    async fn next(&mut self) -> &'static str {
-        tokio::select! {
-            _ = self.interrupt.recv() => "SIGINT",
-            _ = self.terminate.recv() => "SIGTERM",
-            _ = self.hangup.recv() => "SIGHUP",
-        }
-    }
-}
-
 /// What a supervised run produced.
 #[derive(Debug)]
 pub struct ClusterReport {
@@ -271,7 +244,7 @@ pub async fn cluster(
     extra: &[String],
 ) -> Result<ClusterReport, LaunchError> {
     let clients = cfg.clients.count as usize;
-    let mut signals = StopSignals::new().map_err(LaunchError::Signals)?;
+    let mut signals = crate::signals::StopSignals::new().map_err(LaunchError::Signals)?;
     if ensure_certs(cfg)? {
         println!(
             "made the cluster certificates in {}",
