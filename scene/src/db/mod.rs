@@ -1,5 +1,6 @@
 //! The voxel database on disk: a directory with `manifest.dray` (see
-//! [`manifest`]) and `voxels.dray`, the voxel blobs back to back.
+//! [`manifest`]) and `voxels.dray`, the voxel blobs back to back. A shard
+//! of one ([`shard`]) also has `shard.dray` and only its voxels' blobs.
 //!
 //! [`Database`] opens one, reads blobs by id without loading the rest,
 //! answers reference ray queries, verifies it and summarizes it.
