@@ -583,5 +583,8 @@ fn a_node_stops_cleanly_on_sigterm_and_sighup_starting_or_running() {
     let (display, _out) = start("display");
     std::thread::sleep(Duration::from_millis(500));
     let log = stop(display, "HUP");
-    assert!(log.contains("stopped while starting") && log.contains("SIGHUP"), "{log}");
+    assert!(
+        log.contains("stopped while starting") && log.contains("SIGHUP"),
+        "{log}"
+    );
 }

@@ -4,6 +4,7 @@
 //! parser's, and the scripts and the binary run for real. Each failure
 //! names the file and what disagrees.
 
+use base64::Engine;
 use dray_config::Config;
 use serde_yaml_ng::Value;
 use std::collections::{BTreeMap, BTreeSet};
@@ -682,47 +683,22 @@ fn secrets(out: &Output) -> BTreeMap<String, BTreeMap<String, Vec<u8>>> {
             .iter()
             .map(|(k, v)| {
                 let k = k.as_str().expect("a key").to_string();
-                let bytes = base64_decode(v.as_str().expect("base64 text"))
-                    .unwrap_or_else(|| panic!("{MAKE_SECRETS}: Secret {name}'s {k} is not base64"));
+                let text: String = v
+                    .as_str()
+                    .expect("base64 text")
+                    .split_whitespace()
+                    .collect();
+                let bytes = base64::engine::general_purpose::STANDARD
+                    .decode(text)
+                    .unwrap_or_else(|e| {
+                        panic!("{MAKE_SECRETS}: Secret {name}'s {k} is not base64: {e}")
+                    });
                 (k, bytes)
             })
             .collect();
         found.insert(name, data);
     }
     found
-}
-
-/// Standard padded base64, as a Secret's data is written.
-fn base64_decode(text: &str) -> Option<Vec<u8>> {
-    let digit = |c: u8| -> Option<u32> {
-        Some(match c {
-            b'A'..=b'Z' => c - b'A',
-            b'a'..=b'z' => c - b'a' + 26,
-            b'0'..=b'9' => c - b'0' + 52,
-            b'+' => 62,
-            b'/' => 63,
-            _ => return None,
-        } as u32)
-    };
-    let clean: Vec<u8> = text.bytes().filter(|c| !c.is_ascii_whitespace()).collect();
-    let chunks = clean.chunks_exact(4);
-    if !chunks.remainder().is_empty() {
-        return None;
-    }
-    let mut out = Vec::with_capacity(clean.len() / 4 * 3);
-    for chunk in chunks {
-        let pad = chunk.iter().rev().take_while(|&&c| c == b'=').count();
-        if pad > 2 {
-            return None;
-        }
-        let mut n = 0u32;
-        for &c in &chunk[..4 - pad] {
-            n = n << 6 | digit(c)?;
-        }
-        n <<= 6 * pad as u32;
-        out.extend_from_slice(&n.to_be_bytes()[1..4 - pad]);
-    }
-    Some(out)
 }
 
 #[test]
