@@ -670,3 +670,28 @@ fn shard_cuts_a_database_and_a_store_of_another_shard_is_refused() {
         text(&out)
     );
 }
+
+/// A node whose address is not on its host (a launcher that placed its
+/// rank elsewhere) stops at once, naming the key to change.
+#[test]
+fn a_node_whose_address_is_not_on_its_host_names_the_key() {
+    let dir = tempfile::tempdir().unwrap();
+    let local = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/examples/local.toml");
+    // 192.0.2.0/24 is for documentation: no host has it.
+    let config_text = std::fs::read_to_string(local)
+        .unwrap()
+        .replace("\"127.0.0.1:7400\"", "\"192.0.2.7:7400\"");
+    let cfg = dir.path().join("c.toml");
+    std::fs::write(&cfg, config_text).unwrap();
+    let certs = dir.path().join("certs");
+    let out = dray(&["certs", "init", s(&certs), "--config", s(&cfg)]);
+    assert!(out.status.success(), "{}", text(&out));
+    let out = dray(&["node", "--config", s(&cfg), "--role", "scheduler"]);
+    assert!(!out.status.success());
+    assert!(
+        text(&out).contains("192.0.2.7:7400")
+            && text(&out).contains("is not this host's (change scheduler.address"),
+        "{}",
+        text(&out)
+    );
+}

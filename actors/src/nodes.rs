@@ -676,18 +676,25 @@ pub async fn node(
         Role::Store => format!("stores[{index}].address"),
         _ => "clients.bind".to_string(),
     };
-    let bind_err =
-        |addr: SocketAddr, what: &str, e: &dyn std::fmt::Display, io: Option<&std::io::Error>| {
-            if io.is_some_and(|io| io.kind() == std::io::ErrorKind::AddrInUse) {
-                ClusterError::AddressInUse {
-                    node: me.to_string(),
-                    addr,
-                    key: listen_key.clone(),
-                }
-            } else {
-                node_err(&me, format!("{what} {addr}: {e}"))
+    let bind_err = |addr: SocketAddr,
+                    what: &str,
+                    e: &dyn std::fmt::Display,
+                    io: Option<&std::io::Error>| {
+        if io.is_some_and(|io| io.kind() == std::io::ErrorKind::AddrInUse) {
+            ClusterError::AddressInUse {
+                node: me.to_string(),
+                addr,
+                key: listen_key.clone(),
             }
-        };
+        } else if io.is_some_and(|io| io.kind() == std::io::ErrorKind::AddrNotAvailable) {
+            node_err(
+                    &me,
+                    format!("{what} {addr}: {e}: the address is not this host's (change {listen_key} in the config, or start this node on its host)"),
+                )
+        } else {
+            node_err(&me, format!("{what} {addr}: {e}"))
+        }
+    };
     // A host name may not resolve yet where a launcher starts every node
     // at once (a Kubernetes pod's name appears once the pod runs); a
     // client looks the scheduler up to bind the same address family.
