@@ -215,6 +215,27 @@ mod tests {
         assert!(e.contains("set launch.hosts"), "{e}");
     }
 
+    proptest::proptest! {
+        /// Any text parses to an address whose filled host is an IP or a
+        /// valid name, or is refused naming the text.
+        #[test]
+        fn any_text_parses_or_is_refused(text in "[a-z0-9.:{}\\[\\]-]{0,30}") {
+            match NodeAddress::parse(&text) {
+                Ok(a) => {
+                    let hosts: Vec<String> = (0..8).map(|i| format!("h{i}")).collect();
+                    if a.most_host_index().is_none_or(|n| n < hosts.len()) {
+                        let host = a.host(&hosts, "test").unwrap();
+                        proptest::prop_assert!(
+                            host.parse::<IpAddr>().is_ok() || is_host_name(&host),
+                            "{text:?} -> {host:?}"
+                        );
+                    }
+                }
+                Err(e) => proptest::prop_assert!(e.contains(&format!("{text:?}")), "{e}"),
+            }
+        }
+    }
+
     #[test]
     fn a_name_is_looked_up() {
         let a = NodeAddress::parse("localhost:7400").unwrap();

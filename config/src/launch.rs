@@ -317,6 +317,32 @@ mod tests {
         }
     }
 
+    proptest::proptest! {
+        /// Any text, as a hostile or confused launcher might set it, gives
+        /// a list of valid host names of bounded length or an error.
+        #[test]
+        fn any_host_list_expands_or_is_refused(text in "[a-z0-9\\[\\],.-]{0,40}") {
+            if let Ok(hosts) = expand_host_list(&text) {
+                proptest::prop_assert!(hosts.len() <= MAX_HOSTS);
+                for h in hosts {
+                    proptest::prop_assert!(crate::address::is_host_name(&h), "{h:?}");
+                }
+            }
+        }
+
+        /// A list of names with ranges expands to every name in order.
+        #[test]
+        fn ranges_expand_in_order(lo in 0u32..500, n in 1u32..20, width in 1usize..5) {
+            let hi = lo + n - 1;
+            let list = format!("n[{lo:0width$}-{hi}],x");
+            let hosts = expand_host_list(&list).unwrap();
+            proptest::prop_assert_eq!(hosts.len() as u32, n + 1);
+            for (k, h) in hosts[..n as usize].iter().enumerate() {
+                proptest::prop_assert_eq!(h, &format!("n{:0width$}", lo + k as u32));
+            }
+        }
+    }
+
     #[test]
     fn ranks_name_each_node_once() {
         let nodes: Vec<String> = ["scheduler", "display", "store-0", "client-0"]

@@ -197,6 +197,23 @@ mod tests {
         }
     }
 
+    proptest::proptest! {
+        /// Any shard file's bytes read back as a shard or are refused.
+        #[test]
+        fn any_shard_file_reads_or_is_refused(bytes in proptest::collection::vec(proptest::prelude::any::<u8>(), 0..40)) {
+            let text = String::from_utf8_lossy(&bytes);
+            if let Ok(s) = ShardOf::parse(&text) {
+                proptest::prop_assert!(s.index < s.count && s.count <= MAX_SHARDS);
+            }
+        }
+
+        #[test]
+        fn shard_files_round_trip(count in 1u32..=MAX_SHARDS, index in 0u32..MAX_SHARDS) {
+            let s = ShardOf { index: index % count, count };
+            proptest::prop_assert_eq!(ShardOf::parse(&s.to_text()), Ok(s));
+        }
+    }
+
     #[test]
     fn a_shard_covers_the_finer_shards_inside_it() {
         let s = ShardOf { index: 1, count: 2 };
