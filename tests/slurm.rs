@@ -10,10 +10,9 @@
 mod common;
 
 use common::*;
-use dray_actors::nodes::frame_cameras;
-use std::path::{Path, PathBuf};
-use std::process::{Command, Output, Stdio};
-use std::time::{Duration, Instant};
+use std::path::Path;
+use std::process::Command;
+use std::time::Duration;
 
 const FRAMES: u32 = 10;
 
@@ -35,100 +34,6 @@ fn slurm_missing() -> Option<String> {
         )),
         Ok(_) => None,
     }
-}
-
-/// Runs `cmd` to its end or kills it after `limit`, naming `what`.
-fn run_within(mut cmd: Command, limit: Duration, what: &str) -> Output {
-    let child = cmd
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap_or_else(|e| panic!("{what}: {e}"));
-    let pid = child.id();
-    let done = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
-    let watch = done.clone();
-    let what_owned = what.to_string();
-    std::thread::spawn(move || {
-        let deadline = Instant::now() + limit;
-        while Instant::now() < deadline {
-            if watch.load(std::sync::atomic::Ordering::Relaxed) {
-                return;
-            }
-            std::thread::sleep(Duration::from_millis(100));
-        }
-        eprintln!("{what_owned}: still running after {limit:?}; killing it");
-        let _ = Command::new("kill").arg(pid.to_string()).status();
-    });
-    let out = child.wait_with_output().unwrap();
-    done.store(true, std::sync::atomic::Ordering::Relaxed);
-    out
-}
-
-/// A cluster of 2 stores (each on its own shard) and 2 clients, every
-/// address on the first host of the Slurm step.
-fn setup(dir: &Path) -> PathBuf {
-    let db = plant_db(dir, 20_000);
-    let out = Command::new(dray())
-        .args(["shard", db.to_str().unwrap(), "--of", "2", "--out"])
-        .arg(dir.join("shards"))
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "dray shard: {out:?}");
-    write_path(&db, &dir.join("path.toml"), FRAMES);
-    let [p0, p1, p2, p3] = free_ports::<4>();
-    let text = format!(
-        r#"
-[scene]
-database = "{db}"
-
-[render]
-width = 96
-height = 64
-tile_size = 16
-shadows = true
-depth_and_ids = true
-camera_path = "path.toml"
-
-[render.camera]
-eye = [0.0, 5.0, -30.0]
-look = [0.0, 2.0, 0.0]
-
-[scheduler]
-address = "{{host:0}}:{p0}"
-
-[display]
-address = "{{host:0}}:{p1}"
-output = "out"
-
-[[stores]]
-address = "{{host:0}}:{p2}"
-database = "shards/shard-0"
-
-[[stores]]
-address = "{{host:0}}:{p3}"
-database = "shards/shard-1"
-
-[clients]
-count = 2
-threads = 1
-cache_mb = 0.5
-
-[certs]
-dir = "certs"
-"#,
-        db = db.display()
-    );
-    let config = dir.join("cluster.toml");
-    std::fs::write(&config, text).unwrap();
-    let out = Command::new(dray())
-        .args(["certs", "init"])
-        .arg(dir.join("certs"))
-        .arg("--config")
-        .arg(&config)
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "dray certs init: {out:?}");
-    config
 }
 
 /// The JSON summary a rank printed: srun's `--label` cuts long lines into
@@ -161,7 +66,7 @@ fn sbatch_runs_a_sharded_cluster_whose_frames_equal_dray_render() {
     }
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path();
-    let config = setup(dir);
+    let config = launcher_cluster(dir, FRAMES, "");
 
     // Too few tasks: every one of them says so, and the step fails.
     let mut few = Command::new("srun");
@@ -201,11 +106,5 @@ fn sbatch_runs_a_sharded_cluster_whose_frames_equal_dray_render() {
     assert_eq!(summary["missing_pixels"], 0, "{summary}");
 
     let cfg = dray_config::Config::load(&config).unwrap();
-    for (k, cam) in frame_cameras(&cfg).unwrap().iter().enumerate() {
-        let png = dir.join(format!("out/frames/frame-{k:05}.png"));
-        let bytes = std::fs::read(&png).unwrap_or_else(|e| panic!("{}: {e}", png.display()));
-        let (_, _, rgba) = dray_trace::image::decode_png(&bytes).unwrap();
-        let (want, _, _) = reference(&cfg, cam);
-        assert!(rgba == want, "frame {k} differs from dray render's");
-    }
+    assert_saved_frames_equal_reference(&cfg, &dir.join("out/frames"));
 }

@@ -133,3 +133,146 @@ pub fn rt() -> tokio::runtime::Runtime {
         .build()
         .unwrap()
 }
+
+/// Every frame the display wrote under `frames` (`frame-K.png`, and with
+/// `render.depth_and_ids` its `.pfm` and `.primid`) against `dray render`'s
+/// image of the config's K-th camera.
+pub fn assert_saved_frames_equal_reference(cfg: &Config, frames: &Path) {
+    let cameras = dray_actors::nodes::frame_cameras(cfg).unwrap();
+    for (k, camera) in cameras.iter().enumerate() {
+        let stem = frames.join(format!("frame-{k:05}"));
+        let file = |ext: &str| stem.with_extension(ext);
+        let (rgba, depth, primid) = reference(cfg, camera);
+        let png =
+            std::fs::read(file("png")).unwrap_or_else(|e| panic!("{}: {e}", file("png").display()));
+        let (w, h, pixels) = dray_trace::image::decode_png(&png).unwrap();
+        assert_eq!(
+            (w, h),
+            (cfg.render.width, cfg.render.height),
+            "frame {k}: size"
+        );
+        assert!(pixels == rgba, "frame {k}: colours differ from dray render");
+        if !cfg.render.depth_and_ids {
+            continue;
+        }
+        let (_, _, d) = dray_trace::image::read_pfm(&file("pfm")).unwrap();
+        assert!(
+            d.len() == depth.len()
+                && d.iter()
+                    .zip(&depth)
+                    .all(|(a, b)| a.to_bits() == b.to_bits()),
+            "frame {k}: depth differs from dray render"
+        );
+        let ids = dray_trace::image::read_u32(&file("primid")).unwrap();
+        assert!(
+            ids == primid,
+            "frame {k}: triangle ids differ from dray render"
+        );
+    }
+}
+
+/// A cluster for a launcher to start (`tests/slurm.rs`, `tests/mpi.rs`):
+/// a 20 k plant cut into 2 shards, 2 stores each reading its own, 2
+/// clients, a walk of `frames`; every address `{host:0}:PORT` on free
+/// ports, `launch` appended (e.g. a `[launch]` table). Writes
+/// `dir/cluster.toml` and its certificates; returns the config's path.
+pub fn launcher_cluster(dir: &Path, frames: u32, launch: &str) -> PathBuf {
+    let dray = env!("CARGO_BIN_EXE_dray");
+    let db = plant_db(dir, 20_000);
+    let out = std::process::Command::new(dray)
+        .args(["shard", db.to_str().unwrap(), "--of", "2", "--out"])
+        .arg(dir.join("shards"))
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "dray shard: {out:?}");
+    write_path(&db, &dir.join("path.toml"), frames);
+    let [p0, p1, p2, p3] = free_ports::<4>();
+    let text = format!(
+        r#"
+[scene]
+database = "{db}"
+
+[render]
+width = 96
+height = 64
+tile_size = 16
+shadows = true
+depth_and_ids = true
+camera_path = "path.toml"
+
+[render.camera]
+eye = [0.0, 5.0, -30.0]
+look = [0.0, 2.0, 0.0]
+
+[scheduler]
+address = "{{host:0}}:{p0}"
+
+[display]
+address = "{{host:0}}:{p1}"
+output = "out"
+
+[[stores]]
+address = "{{host:0}}:{p2}"
+database = "shards/shard-0"
+
+[[stores]]
+address = "{{host:0}}:{p3}"
+database = "shards/shard-1"
+
+[clients]
+count = 2
+threads = 1
+cache_mb = 0.5
+
+[certs]
+dir = "certs"
+{launch}
+"#,
+        db = db.display()
+    );
+    let config = dir.join("cluster.toml");
+    std::fs::write(&config, text).unwrap();
+    let out = std::process::Command::new(dray)
+        .args(["certs", "init"])
+        .arg(dir.join("certs"))
+        .arg("--config")
+        .arg(&config)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "dray certs init: {out:?}");
+    config
+}
+
+/// Runs `cmd` to its end, or kills it after `limit` (naming `what`).
+pub fn run_within(
+    mut cmd: std::process::Command,
+    limit: std::time::Duration,
+    what: &str,
+) -> std::process::Output {
+    use std::sync::atomic::{AtomicBool, Ordering};
+    let child = cmd
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap_or_else(|e| panic!("{what}: {e}"));
+    let pid = child.id();
+    let done = std::sync::Arc::new(AtomicBool::new(false));
+    let watch = done.clone();
+    let what_owned = what.to_string();
+    std::thread::spawn(move || {
+        let deadline = std::time::Instant::now() + limit;
+        while std::time::Instant::now() < deadline {
+            if watch.load(Ordering::Relaxed) {
+                return;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(100));
+        }
+        eprintln!("{what_owned}: still running after {limit:?}; killing it");
+        let _ = std::process::Command::new("kill")
+            .arg(pid.to_string())
+            .status();
+    });
+    let out = child.wait_with_output().unwrap();
+    done.store(true, Ordering::Relaxed);
+    out
+}
