@@ -1,5 +1,6 @@
 //! Shared by the cluster tests: a small generated plant preprocessed into
-//! a database, configs on free loopback ports, and the reference render.
+//! a database, configs on free loopback ports (one sharded, for launchers),
+//! the reference render and the check of the frames a display wrote.
 
 #![allow(dead_code)]
 
