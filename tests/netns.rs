@@ -167,71 +167,25 @@ fn subnet() -> String {
     format!("10.{}.{}", 200 + pid % 50, pid / 50 % 250)
 }
 
-/// The cluster config: every node at its host's address, store-2 a replica
-/// of store-0's shard.
-fn config_text(db: &Path, path: &Path, dir: &Path, addrs: &HashMap<String, String>) -> String {
+/// The cluster config: every node at its host's address, each store
+/// reading only its shard, store-2 a replica of store-0's.
+fn netns_config(db: &Path, path: &Path, dir: &Path, addrs: &HashMap<String, String>) -> String {
     let at = |node: &str| format!("{}:{PORT}", addrs[node]);
-    format!(
-        r#"
-[scene]
-database = "{db}"
-
-[render]
-width = 96
-height = 64
-tile_size = 16
-shadows = true
-reflection_depth = 1
-depth_and_ids = true
-camera_path = "{path}"
-
-[render.camera]
-eye = [0.0, 5.0, -30.0]
-look = [0.0, 2.0, 0.0]
-
-[scheduler]
-address = "{scheduler}"
-
-[display]
-address = "{display}"
-output = "{out}"
-frames_ahead = {FRAMES_AHEAD}
-
-# Each store reads only its shard, as on a host of its own.
-[[stores]]
-address = "{store0}"
-shard = "0/2"
-database = "{shards}/shard-0"
-
-[[stores]]
-address = "{store1}"
-shard = "1/2"
-database = "{shards}/shard-1"
-
-[[stores]]
-address = "{store2}"
-shard = "0/2"
-database = "{shards}/shard-0"
-
-[clients]
-count = 3
-threads = 1
-cache_mb = 64
-
-[certs]
-dir = "{certs}"
-"#,
-        db = db.display(),
-        path = path.display(),
-        out = dir.join("out").display(),
-        shards = dir.join("shards").display(),
-        certs = dir.join("certs").display(),
-        scheduler = at("scheduler"),
-        display = at("display"),
-        store0 = at("store-0"),
-        store1 = at("store-1"),
-        store2 = at("store-2"),
-    )
+    let store = |i: usize, shard: u32| {
+        let db = dir.join(format!("shards/shard-{shard}"));
+        format!(
+            "address = \"{}\"\nshard = \"{shard}/2\"\ndatabase = \"{}\"",
+            at(&format!("store-{i}")),
+            db.display()
+        )
+    };
+    let layout = Layout {
+        scheduler: at("scheduler"),
+        display: at("display"),
+        stores: vec![store(0, 0), store(1, 1), store(2, 0)],
+        tile_deadline_ms: None,
+    };
+    config_text_with(db, path, dir, &layout, 3, 64.0, "", "")
 }
 
 /// Starts `dray node` for `node` in its namespace; its stdout lines arrive
@@ -312,17 +266,12 @@ fn a_cluster_across_network_namespaces_survives_a_dead_client_and_store() {
     let started = Instant::now();
     let dir = tempfile::tempdir().unwrap();
     let db = plant_db(dir.path(), 30_000);
-    let sharded = Command::new(env!("CARGO_BIN_EXE_dray"))
-        .args(["shard", db.to_str().unwrap(), "--of", "2", "--out"])
-        .arg(dir.path().join("shards"))
-        .output()
-        .unwrap();
-    assert!(sharded.status.success(), "dray shard: {sharded:?}");
+    shard(&db, 2, &dir.path().join("shards"));
     let path = dir.path().join("walk.toml");
     write_path(&db, &path, FRAMES);
     let names: Vec<&str> = NODES.iter().map(|n| n.0).collect();
     let (mut hosts, addrs) = Hosts::new(&names, &subnet());
-    let text = config_text(&db, &path, dir.path(), &addrs);
+    let text = netns_config(&db, &path, dir.path(), &addrs);
     let (config, cfg) = common::config(dir.path(), &text);
     let node_names = cfg.node_names();
     assert_eq!(node_names, names, "the config's nodes are the hosts'");

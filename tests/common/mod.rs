@@ -36,7 +36,8 @@ pub fn write_path(db: &Path, out: &Path, frames: u32) {
 }
 
 /// The text of a cluster config over `db` with a camera path, on free
-/// ports; `extra` is appended inside `[clients]`.
+/// loopback ports with two stores; `extra_clients` is appended inside
+/// `[clients]`, `links` after it.
 pub fn config_text(
     db: &Path,
     path: &Path,
@@ -46,7 +47,61 @@ pub fn config_text(
     extra_clients: &str,
     links: &str,
 ) -> String {
-    let ports = free_ports::<4>();
+    let [p0, p1, p2, p3] = free_ports::<4>();
+    let at = |port: u16| format!("127.0.0.1:{port}");
+    let layout = Layout {
+        scheduler: at(p0),
+        display: at(p1),
+        stores: vec![
+            format!("address = \"{}\"", at(p2)),
+            format!("address = \"{}\"", at(p3)),
+        ],
+        tile_deadline_ms: Some(3000),
+    };
+    config_text_with(
+        db,
+        path,
+        dir,
+        &layout,
+        clients,
+        cache_mb,
+        extra_clients,
+        links,
+    )
+}
+
+/// Where a config's nodes listen: the scheduler's and the display's
+/// addresses, and each store's table (its address, and its shard or
+/// database where it has its own); the scheduler's tile deadline, if not
+/// its default.
+pub struct Layout {
+    pub scheduler: String,
+    pub display: String,
+    pub stores: Vec<String>,
+    pub tile_deadline_ms: Option<u32>,
+}
+
+/// [`config_text`] with the nodes where `layout` puts them; `tail` goes
+/// after `[clients]` (link shaping, `[launch]`).
+#[allow(clippy::too_many_arguments)]
+pub fn config_text_with(
+    db: &Path,
+    path: &Path,
+    dir: &Path,
+    layout: &Layout,
+    clients: u32,
+    cache_mb: f64,
+    extra_clients: &str,
+    tail: &str,
+) -> String {
+    let deadline = layout
+        .tile_deadline_ms
+        .map_or(String::new(), |ms| format!("tile_deadline_ms = {ms}\n"));
+    let stores: String = layout
+        .stores
+        .iter()
+        .map(|body| format!("[[stores]]\n{body}\n\n"))
+        .collect();
     format!(
         r#"
 [scene]
@@ -66,26 +121,19 @@ eye = [0.0, 5.0, -30.0]
 look = [0.0, 2.0, 0.0]
 
 [scheduler]
-address = "127.0.0.1:{p0}"
-tile_deadline_ms = 3000
-
+address = "{scheduler}"
+{deadline}
 [display]
-address = "127.0.0.1:{p1}"
+address = "{display}"
 output = "{out}"
 
-[[stores]]
-address = "127.0.0.1:{p2}"
-
-[[stores]]
-address = "127.0.0.1:{p3}"
-
-[clients]
+{stores}[clients]
 count = {clients}
 threads = 1
 cache_mb = {cache_mb}
 {extra_clients}
 
-{links}
+{tail}
 
 [certs]
 dir = "{certs}"
@@ -94,11 +142,25 @@ dir = "{certs}"
         path = path.display(),
         out = dir.join("out").display(),
         certs = dir.join("certs").display(),
-        p0 = ports[0],
-        p1 = ports[1],
-        p2 = ports[2],
-        p3 = ports[3],
+        scheduler = layout.scheduler,
+        display = layout.display,
     )
+}
+
+/// `dray shard DB --of N --out OUT`, which must succeed.
+pub fn shard(db: &Path, n: u32, out: &Path) {
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_dray"))
+        .args([
+            "shard",
+            db.to_str().unwrap(),
+            "--of",
+            &n.to_string(),
+            "--out",
+        ])
+        .arg(out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "dray shard: {o:?}");
 }
 
 /// Writes a config and loads it back.
@@ -178,62 +240,28 @@ pub fn assert_saved_frames_equal_reference(cfg: &Config, frames: &Path) {
 /// ports, `launch` appended (e.g. a `[launch]` table). Writes
 /// `dir/cluster.toml` and its certificates; returns the config's path.
 pub fn launcher_cluster(dir: &Path, frames: u32, launch: &str) -> PathBuf {
-    let dray = env!("CARGO_BIN_EXE_dray");
     let db = plant_db(dir, 20_000);
-    let out = std::process::Command::new(dray)
-        .args(["shard", db.to_str().unwrap(), "--of", "2", "--out"])
-        .arg(dir.join("shards"))
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "dray shard: {out:?}");
-    write_path(&db, &dir.join("path.toml"), frames);
+    shard(&db, 2, &dir.join("shards"));
+    let path = dir.join("path.toml");
+    write_path(&db, &path, frames);
     let [p0, p1, p2, p3] = free_ports::<4>();
-    let text = format!(
-        r#"
-[scene]
-database = "{db}"
-
-[render]
-width = 96
-height = 64
-tile_size = 16
-shadows = true
-depth_and_ids = true
-camera_path = "path.toml"
-
-[render.camera]
-eye = [0.0, 5.0, -30.0]
-look = [0.0, 2.0, 0.0]
-
-[scheduler]
-address = "{{host:0}}:{p0}"
-
-[display]
-address = "{{host:0}}:{p1}"
-output = "out"
-
-[[stores]]
-address = "{{host:0}}:{p2}"
-database = "shards/shard-0"
-
-[[stores]]
-address = "{{host:0}}:{p3}"
-database = "shards/shard-1"
-
-[clients]
-count = 2
-threads = 1
-cache_mb = 0.5
-
-[certs]
-dir = "certs"
-{launch}
-"#,
-        db = db.display()
-    );
+    let store = |port: u16, i: u32| {
+        let shard = dir.join(format!("shards/shard-{i}"));
+        format!(
+            "address = \"{{host:0}}:{port}\"\ndatabase = \"{}\"",
+            shard.display()
+        )
+    };
+    let layout = Layout {
+        scheduler: format!("{{host:0}}:{p0}"),
+        display: format!("{{host:0}}:{p1}"),
+        stores: vec![store(p2, 0), store(p3, 1)],
+        tile_deadline_ms: None,
+    };
+    let text = config_text_with(&db, &path, dir, &layout, 2, 0.5, "", launch);
     let config = dir.join("cluster.toml");
     std::fs::write(&config, text).unwrap();
-    let out = std::process::Command::new(dray)
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_dray"))
         .args(["certs", "init"])
         .arg(dir.join("certs"))
         .arg("--config")
