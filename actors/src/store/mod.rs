@@ -120,7 +120,7 @@ pub(crate) fn clip(mut s: String) -> String {
 
 /// Opens the database a store serves `shard` from: a whole database, or
 /// a shard of one (`dray shard`) that holds every voxel of `shard`.
-pub fn open_database(path: &std::path::Path, shard: Shard) -> Result<Database, String> {
+fn open_database(path: &std::path::Path, shard: Shard) -> Result<Database, String> {
     let db = Database::open(path).map_err(|e| e.to_string())?;
     check_holds(&db, shard)?;
     Ok(db)
