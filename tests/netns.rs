@@ -8,7 +8,9 @@
 //! display is done.
 //!
 //! Needs root and iproute2; elsewhere it says why and passes, unless
-//! `DRAY_REQUIRE_NETNS=1` makes that a failure.
+//! `DRAY_REQUIRE_NETNS=1` makes that a failure. The nodes log at the level
+//! `DRAY_NETNS_LOG` gives (`warn` by default); a failure names a copy of
+//! every node's whole log.
 
 mod common;
 
@@ -203,7 +205,10 @@ fn start_node(
         .arg(env!("CARGO_BIN_EXE_dray"))
         .args(["node", "--config", config.to_str().unwrap()])
         .args(["--role", role, "--index", &index.to_string()])
-        .env("RUST_LOG", "warn")
+        .env(
+            "RUST_LOG",
+            std::env::var("DRAY_NETNS_LOG").unwrap_or_else(|_| "warn".into()),
+        )
         .stdout(Stdio::piped())
         .stderr(log)
         .spawn()
@@ -220,9 +225,16 @@ fn start_node(
     hosts.processes.push((node.to_string(), child));
 }
 
-/// The last lines of every node's log, for a failure message.
+/// The last lines of every node's log, for a failure message, and where
+/// a copy of the whole logs outlives the test's directory.
 fn log_tails(logs: &Path) -> String {
-    let mut s = String::new();
+    let kept = std::env::temp_dir().join(format!("dray-netns-logs-{}", std::process::id()));
+    let _ = std::fs::create_dir_all(&kept);
+    for (node, _, _) in NODES {
+        let name = format!("{node}.log");
+        let _ = std::fs::copy(logs.join(&name), kept.join(&name));
+    }
+    let mut s = format!("whole logs: {}\n", kept.display());
     for (node, _, _) in NODES {
         let text = std::fs::read_to_string(logs.join(format!("{node}.log"))).unwrap_or_default();
         let tail: Vec<&str> = text.lines().rev().take(8).collect();

@@ -249,6 +249,19 @@ impl Frame {
         released
     }
 
+    /// Tile `i` is done: nobody holds it any more. A reassigned tile's
+    /// other holders send pixels the display takes as duplicates and
+    /// reports to no one, so without this they would count as holding it
+    /// until the frame ends, and a client that seems to hold more than
+    /// one tile never takes another client's (those of a lost client).
+    fn drop_holders(&mut self, i: usize) {
+        for h in std::mem::take(&mut self.tiles[i].outstanding) {
+            if let Some(n) = self.held.get_mut(&h.client) {
+                *n = n.saturating_sub(1);
+            }
+        }
+    }
+
     fn has_work_for(&self, c: &Name) -> bool {
         self.fresh_left > 0 || self.retry_for(c).is_some()
     }
@@ -621,6 +634,7 @@ impl Scheduler {
                 State::Out | State::Retry => {}
             }
             t.state = State::Done;
+            frame.drop_holders(i);
             done += 1;
             frame.done += 1;
             // The block's time, shared by area.
@@ -1099,6 +1113,102 @@ mod tests {
         }
         // Which rule decided each step: (no cut, by sectors).
         assert_eq!(rules, [(true, true), (true, false), (false, false)]);
+    }
+
+    #[test]
+    fn a_reassigned_tile_done_by_one_holder_is_held_by_none() {
+        // One tile per assignment.
+        let mut s = Scheduler::new(SchedulerOptions {
+            max_block_px: 0,
+            ..options()
+        });
+        let clients: Vec<Address> = (0..3).map(crate::names::client).collect();
+        for c in &clients {
+            let slots = 1000;
+            let holds_model = false;
+            s.request_work(c.clone(), RequestWork { slots, holds_model });
+        }
+        run_frame(&mut s, 0, walk_camera(6.0));
+        for (_, c) in &mut s.clients {
+            c.credits = 0;
+        }
+        let mut out = Vec::new();
+        let f1 = FrameStart {
+            frame: 1,
+            camera: walk_camera(5.0),
+            width: 256,
+            height: 128,
+            ..start()
+        };
+        s.frame_start(f1, &mut out);
+        let (a, b) = (&clients[0], &clients[1]);
+        // Two tiles out to a, which goes silent: past the deadline they go
+        // to b as well, and b renders them first.
+        let slots = 2;
+        s.request_work(
+            a.clone(),
+            RequestWork {
+                slots,
+                holds_model: false,
+            },
+        );
+        s.dispatch(&mut out);
+        let frame = s.frames.get_mut(&1).unwrap();
+        let late: Vec<usize> = (0..frame.tiles.len())
+            .filter(|&i| frame.tiles[i].state == State::Out)
+            .collect();
+        assert_eq!(late.len(), 2, "a's two tiles out");
+        for &i in &late {
+            Scheduler::requeue(frame, i, "late", &a.node);
+        }
+        s.request_work(
+            b.clone(),
+            RequestWork {
+                slots,
+                holds_model: false,
+            },
+        );
+        out.clear();
+        s.dispatch(&mut out);
+        let mut to_b = Vec::new();
+        for o in out.drain(..) {
+            if let Out::Assign { node, msg, .. } = o {
+                assert_eq!(node, b.node, "only b asked");
+                to_b.push(msg.tile);
+            }
+        }
+        let grid = TileGrid::new(256, 128, s.opts.tile_size);
+        let retried: Vec<usize> = to_b
+            .iter()
+            .flat_map(|t| grid.tiles_of(t).unwrap())
+            .collect();
+        assert_eq!(retried, late, "the late tiles go to b first");
+        assert_eq!(s.frames[&1].held_by(&a.node), 2);
+        for tile in to_b {
+            let stats = TileStats::default();
+            let hits = BoundedVec::default();
+            let (client, frame) = (b.node.clone(), 1);
+            s.report(
+                &b.node,
+                TileReport {
+                    client,
+                    frame,
+                    tile,
+                    stats,
+                    hits,
+                },
+                &mut out,
+            );
+        }
+        let frame = &s.frames[&1];
+        // a's copies are duplicates the display reports to no one.
+        assert_eq!(
+            frame.held_by(&a.node),
+            0,
+            "a holds nothing once b's are done"
+        );
+        assert_eq!(frame.held_by(&b.node), 0);
+        assert!(late.iter().all(|&i| frame.tiles[i].outstanding.is_empty()));
     }
 
     #[test]
