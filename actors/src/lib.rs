@@ -11,6 +11,10 @@
 //! | Scheduler, FrameAssigner, Prefetcher | `scheduler` | [`scheduler`] |
 //! | Display (frames, metrics, camera path) | `display` | [`display`] |
 //!
+//! [`nodes`] wires them into nodes and whole runs; [`centre`] runs the
+//! scheduler node and the display alone against stand-in clients, to
+//! measure what they cost as clients grow.
+//!
 //! Message flow: the display sends one [`Message::CameraUpdate`] per frame to
 //! the frame assigner, which releases frames to the scheduler
 //! ([`Message::FrameStart`]) once the previous one is fully assigned
@@ -31,6 +35,7 @@
 //! [`Message::FrameDone`]: dray_protocol::Message::FrameDone
 //! [`Message::TileOwners`]: dray_protocol::Message::TileOwners
 
+pub mod centre;
 pub mod client;
 pub mod display;
 pub mod names;

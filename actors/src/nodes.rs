@@ -47,7 +47,7 @@ use tokio::task::JoinHandle;
 use tracing::{info, warn};
 
 /// Undelivered messages an actor's mailbox holds before senders wait.
-const MAILBOX: usize = 4096;
+pub(crate) const MAILBOX: usize = 4096;
 
 /// Why a run could not start or finish.
 #[derive(Debug, thiserror::Error)]
@@ -288,7 +288,10 @@ fn client_options(cfg: &Config, opts: &RunOptions) -> Result<ClientOptions, Clus
 /// token (`dray cluster` sets it, to print the viewer's address).
 pub const WEB_TOKEN_ENV: &str = "DRAY_WEB_TOKEN";
 
-fn display_options(cfg: &Config, opts: &RunOptions) -> Result<DisplayOptions, ClusterError> {
+pub(crate) fn display_options(
+    cfg: &Config,
+    opts: &RunOptions,
+) -> Result<DisplayOptions, ClusterError> {
     let web = cfg.web_addr()?;
     Ok(DisplayOptions {
         assigner: names::assigner(),
@@ -312,19 +315,24 @@ fn display_options(cfg: &Config, opts: &RunOptions) -> Result<DisplayOptions, Cl
 }
 
 /// The scheduler node's three actors.
-struct SchedulerTasks {
-    scheduler: JoinHandle<Result<SchedulerSummary, ActorError>>,
-    assigner: JoinHandle<Result<(), ActorError>>,
-    prefetcher: Option<JoinHandle<Result<crate::scheduler::PrefetcherSummary, ActorError>>>,
+pub(crate) struct SchedulerTasks {
+    pub(crate) scheduler: JoinHandle<Result<SchedulerSummary, ActorError>>,
+    pub(crate) assigner: JoinHandle<Result<(), ActorError>>,
+    pub(crate) prefetcher:
+        Option<JoinHandle<Result<crate::scheduler::PrefetcherSummary, ActorError>>>,
 }
 
 /// Actor `actor`'s mailbox on `bus`, holding `capacity` messages.
-fn open_mailbox(bus: &Bus, actor: &str, capacity: usize) -> Result<Mailbox, ClusterError> {
+pub(crate) fn open_mailbox(
+    bus: &Bus,
+    actor: &str,
+    capacity: usize,
+) -> Result<Mailbox, ClusterError> {
     bus.mailbox(name(actor), capacity)
         .map_err(|e| node_err(bus.node(), e))
 }
 
-fn scheduler_mailboxes(bus: &Bus) -> Result<[Mailbox; 3], ClusterError> {
+pub(crate) fn scheduler_mailboxes(bus: &Bus) -> Result<[Mailbox; 3], ClusterError> {
     Ok([
         open_mailbox(bus, names::SCHEDULER, MAILBOX)?,
         open_mailbox(bus, names::ASSIGNER, MAILBOX)?,
@@ -332,7 +340,10 @@ fn scheduler_mailboxes(bus: &Bus) -> Result<[Mailbox; 3], ClusterError> {
     ])
 }
 
-fn spawn_scheduler(cfg: &Config, boxes: [Mailbox; 3]) -> Result<SchedulerTasks, ClusterError> {
+pub(crate) fn spawn_scheduler(
+    cfg: &Config,
+    boxes: [Mailbox; 3],
+) -> Result<SchedulerTasks, ClusterError> {
     let [sched, assign, prefetch] = boxes;
     let prefetcher = cfg.prefetch.enabled.then(names::prefetcher);
     let scheduler = tokio::spawn(run_scheduler(
@@ -411,7 +422,10 @@ async fn shutdown_all(mb: &Mailbox, to: &[Address], reason: &str) {
     }
 }
 
-async fn joined<T>(what: &str, h: JoinHandle<Result<T, ActorError>>) -> Result<T, ClusterError> {
+pub(crate) async fn joined<T>(
+    what: &str,
+    h: JoinHandle<Result<T, ActorError>>,
+) -> Result<T, ClusterError> {
     match h.await {
         Ok(r) => Ok(r?),
         Err(e) => Err(ClusterError::Node {

@@ -716,6 +716,22 @@ impl MessageKind {
     }
 }
 
+impl Role {
+    /// Whether nodes of roles `self` and `other` are connected: one may
+    /// send the other something beyond a ping (by the sender rule,
+    /// [`MessageKind::may_send`]), or either is a tool. A cluster's
+    /// clients never talk to each other, nor its stores, so they are not
+    /// connected: a network of N clients has O(N) links, not O(N²).
+    pub fn connects_to(self, other: Role) -> bool {
+        self == Role::Tool
+            || other == Role::Tool
+            || MessageKind::ALL.iter().any(|k| {
+                !matches!(k, MessageKind::Ping | MessageKind::Pong)
+                    && (k.may_send(self, other) || k.may_send(other, self))
+            })
+    }
+}
+
 fn check_camera(c: &Camera) -> Result<(), String> {
     crate::check_camera(c).map_err(|e| format!("camera {e}"))
 }

@@ -18,7 +18,7 @@ use dray_protocol::{
 use dray_runtime::{Delivery, Mailbox};
 use dray_scene::rng::Rng;
 use glam::Vec3;
-use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::collections::{BTreeMap, BTreeSet, HashMap, VecDeque};
 use std::time::Duration;
 use tokio::time::Instant;
 use tracing::{debug, info, warn};
@@ -254,12 +254,15 @@ impl Frame {
     /// reports to no one, so without this they would count as holding it
     /// until the frame ends, and a client that seems to hold more than
     /// one tile never takes another client's (those of a lost client).
-    fn drop_holders(&mut self, i: usize) {
-        for h in std::mem::take(&mut self.tiles[i].outstanding) {
+    /// Returns whether it had any.
+    fn drop_holders(&mut self, i: usize) -> bool {
+        let holders = std::mem::take(&mut self.tiles[i].outstanding);
+        for h in &holders {
             if let Some(n) = self.held.get_mut(&h.client) {
                 *n = n.saturating_sub(1);
             }
         }
+        !holders.is_empty()
     }
 
     fn has_work_for(&self, c: &Name) -> bool {
@@ -397,6 +400,16 @@ struct Scheduler {
     rng: Rng,
     /// Clients in the order they first asked for work.
     clients: Vec<(Name, ClientState)>,
+    /// Where each client is in `clients`.
+    client_index: HashMap<Name, usize>,
+    /// The clients (their places in `clients`) with credits that
+    /// [`Scheduler::dispatch`] visits, so that a message costs the same
+    /// whether ten clients wait or a thousand.
+    ready: BTreeSet<usize>,
+    /// Clients with credits that got nothing when last visited, left out
+    /// of the visits until something changes that could give them a tile
+    /// ([`Scheduler::wake_all`], [`Scheduler::wake`]).
+    waiting: BTreeSet<usize>,
     frames: BTreeMap<u64, Frame>,
     prev: Option<Previous>,
     summary: SchedulerSummary,
@@ -411,6 +424,9 @@ impl Scheduler {
             policy: policy::of(opts.policy),
             opts,
             clients: Vec::new(),
+            client_index: HashMap::new(),
+            ready: BTreeSet::new(),
+            waiting: BTreeSet::new(),
             frames: BTreeMap::new(),
             prev: None,
             summary: SchedulerSummary::default(),
@@ -418,28 +434,47 @@ impl Scheduler {
         }
     }
 
-    fn client(&mut self, node: &Name) -> Option<&mut ClientState> {
-        self.clients
-            .iter_mut()
-            .find(|(n, _)| n == node)
-            .map(|(_, c)| c)
-    }
-
     fn request_work(&mut self, from: Address, r: RequestWork) {
-        match self.client(&from.node) {
-            Some(c) => {
+        let at = match self.client_index.get(&from.node) {
+            Some(&at) => {
+                let c = &mut self.clients[at].1;
                 c.credits = (c.credits + u32::from(r.slots)).min(MAX_CREDITS);
                 c.holds_model = r.holds_model;
                 c.addr = from;
+                at
             }
-            None => self.clients.push((
-                from.node.clone(),
-                ClientState {
-                    addr: from,
-                    credits: u32::from(r.slots).min(MAX_CREDITS),
-                    holds_model: r.holds_model,
-                },
-            )),
+            None => {
+                let at = self.clients.len();
+                self.client_index.insert(from.node.clone(), at);
+                self.clients.push((
+                    from.node.clone(),
+                    ClientState {
+                        addr: from,
+                        credits: u32::from(r.slots).min(MAX_CREDITS),
+                        holds_model: r.holds_model,
+                    },
+                ));
+                at
+            }
+        };
+        if self.clients[at].1.credits > 0 {
+            self.waiting.remove(&at);
+            self.ready.insert(at);
+        }
+    }
+
+    /// Every waiting client is visited again: the frames changed (one
+    /// started or ended, a tile went back for another client).
+    fn wake_all(&mut self) {
+        self.ready.append(&mut self.waiting);
+    }
+
+    /// Client `node` is visited again: the tiles it holds changed.
+    fn wake(&mut self, node: &Name) {
+        if let Some(&at) = self.client_index.get(node) {
+            if self.waiting.remove(&at) {
+                self.ready.insert(at);
+            }
         }
     }
 
@@ -470,6 +505,7 @@ impl Scheduler {
             "frame started"
         );
         self.frames.insert(frame.number, frame);
+        self.wake_all();
     }
 
     /// Hands out tiles while some client has credits and some frame has
@@ -477,13 +513,28 @@ impl Scheduler {
     fn dispatch(&mut self, out: &mut Vec<Out>) {
         let now = Instant::now();
         let n = self.clients.len();
-        if n == 0 {
+        if n == 0 || self.ready.is_empty() {
+            return;
+        }
+        // Between frames nobody gets anything: not worth a visit per client.
+        if self
+            .frames
+            .values()
+            .all(|f| f.fresh_left == 0 && f.retry.is_empty())
+        {
             return;
         }
         loop {
             let mut progress = false;
-            for k in 0..n {
-                let ci = (self.rr + k) % n;
+            // The clients visited, from `rr` on round the circle; those
+            // that get nothing wait (nothing else in this call gives them
+            // work: other clients' tiles only take it).
+            let pass: Vec<usize> = (self.ready.range(self.rr..))
+                .chain(self.ready.range(..self.rr))
+                .copied()
+                .collect();
+            let mut nothing = Vec::new();
+            for ci in pass {
                 let (node, state) = &mut self.clients[ci];
                 if state.credits == 0 {
                     continue;
@@ -515,12 +566,16 @@ impl Scheduler {
                         if claims {
                             let held: usize = self.frames.values().map(|f| f.held_by(node)).sum();
                             if held > 1 {
+                                nothing.push(ci);
                                 continue;
                             }
                         }
                         match self.frames.values().position(|f| f.has_work_for(node)) {
                             Some(at) => at,
-                            None => continue,
+                            None => {
+                                nothing.push(ci);
+                                continue;
+                            }
                         }
                     }
                 };
@@ -538,6 +593,7 @@ impl Scheduler {
                     out.push(Out::Assigned(frame.number));
                 }
                 let Some(i) = frame.pick(node, &mut self.rng) else {
+                    nothing.push(ci);
                     continue;
                 };
                 state.credits -= 1;
@@ -578,6 +634,11 @@ impl Scheduler {
                     out.push(Out::Assigned(frame.number));
                 }
             }
+            for ci in nothing {
+                self.ready.remove(&ci);
+                self.waiting.insert(ci);
+            }
+            self.ready.retain(|&ci| self.clients[ci].1.credits > 0);
             self.rr = (self.rr + 1) % n;
             if !progress {
                 return;
@@ -586,6 +647,8 @@ impl Scheduler {
     }
 
     fn report(&mut self, node: &Name, r: TileReport, out: &mut Vec<Out>) {
+        // It holds fewer tiles now: it may take another client's.
+        self.wake(node);
         let Some(frame) = self.frames.get_mut(&r.frame) else {
             debug!(frame = r.frame, client = %node, "report for an unknown or finished frame ignored");
             return;
@@ -622,6 +685,7 @@ impl Scheduler {
                 .collect()
         };
         let mut done = 0u32;
+        let mut others_released = false;
         for (k, &i) in tiles.iter().enumerate() {
             frame.release(i, node);
             let t = &mut frame.tiles[i];
@@ -634,7 +698,7 @@ impl Scheduler {
                 State::Out | State::Retry => {}
             }
             t.state = State::Done;
-            frame.drop_holders(i);
+            others_released |= frame.drop_holders(i);
             done += 1;
             frame.done += 1;
             // The block's time, shared by area.
@@ -687,6 +751,9 @@ impl Scheduler {
         if frame.done == frame.tiles.len() {
             let number = frame.number;
             self.complete(number, out);
+        }
+        if others_released {
+            self.wake_all();
         }
     }
 
@@ -751,6 +818,8 @@ impl Scheduler {
                 }
             }
         }
+        // Its holders hold less, and the queues were sorted again.
+        self.wake_all();
     }
 
     /// Puts tile `i` of `frame` back for another client.
@@ -765,6 +834,17 @@ impl Scheduler {
     fn client_lost(&mut self, node: &Name, why: &str) {
         let had = self.clients.len();
         self.clients.retain(|(n, _)| n != node);
+        if had != self.clients.len() {
+            // Places shift: index them again.
+            self.client_index = (self.clients.iter().enumerate())
+                .map(|(i, (n, _))| (n.clone(), i))
+                .collect();
+            self.ready = (0..self.clients.len())
+                .filter(|&i| self.clients[i].1.credits > 0)
+                .collect();
+            self.waiting.clear();
+            self.rr %= self.clients.len().max(1);
+        }
         let mut returned = 0;
         for frame in self.frames.values_mut() {
             for i in 0..frame.tiles.len() {
@@ -780,9 +860,13 @@ impl Scheduler {
         if had != self.clients.len() || returned > 0 {
             warn!(client = %node, tiles = returned, "client lost: {why}");
         }
+        self.wake_all();
     }
 
     fn check_deadlines(&mut self) {
+        // Also what keeps a waiting client from waiting past a change that
+        // did not wake it.
+        self.wake_all();
         let now = Instant::now();
         for frame in self.frames.values_mut() {
             if frame.tiles.len() - frame.fresh_left == frame.done {

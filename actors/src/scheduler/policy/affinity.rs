@@ -123,6 +123,13 @@ pub(super) struct ClientQueues {
     /// Per tile, how many of the last frame's hit samples of each client
     /// land in it.
     votes: Vec<BTreeMap<Name, u32>>,
+    /// Per client, the tiles with some of its votes.
+    voted: HashMap<Name, Vec<usize>>,
+    /// The tiles in `groups`, by curve position: a client out of tiles
+    /// finds the one nearest its region here rather than by measuring
+    /// every queued tile (a cost per steal that grows with the tiles, and
+    /// steals grow with the clients).
+    queued: BTreeMap<u32, usize>,
     /// Per tile, whether the last frame rendered it without a miss (on the
     /// same grid): only such tiles go out in blocks, except to a client
     /// that holds the whole model.
@@ -159,6 +166,12 @@ impl Queues for ClientQueues {
         };
         self.affine = prediction.owners;
         self.votes = prediction.votes;
+        self.voted.clear();
+        for (i, v) in self.votes.iter().enumerate() {
+            for (c, _) in v.iter().filter(|(_, &k)| k > 0) {
+                self.voted.entry(c.clone()).or_default().push(i);
+            }
+        }
         let costs = guide.map(|p| &p.costs);
         self.groups.clear();
         self.group_of.clear();
@@ -189,6 +202,12 @@ impl Queues for ClientQueues {
             }
             self.groups[g].push(i);
         }
+        self.queued = self
+            .groups
+            .iter()
+            .flatten()
+            .map(|&i| (self.ranks[i], i))
+            .collect();
         for q in &mut self.groups {
             match costs {
                 // Ascending cost, ties by descending index: pop() gives the
@@ -204,6 +223,7 @@ impl Queues for ClientQueues {
     fn pick(&mut self, c: &Name, _: &mut Rng) -> Option<usize> {
         if let Some(&g) = self.group_of.get(c) {
             if let Some(i) = self.groups[g].pop() {
+                self.queued.remove(&self.ranks[i]);
                 return Some(i);
             }
         }
@@ -274,7 +294,10 @@ impl Queues for ClientQueues {
                     let group = queue.as_ref().and_then(|o| self.group_of.get(o)).copied();
                     for &j in block.iter().filter(|&&j| j != i) {
                         match group {
-                            Some(g) => self.groups[g].retain(|&k| k != j),
+                            Some(g) => {
+                                self.groups[g].retain(|&k| k != j);
+                                self.queued.remove(&self.ranks[j]);
+                            }
                             None => {
                                 self.unowned.remove(&self.ranks[j]);
                             }
@@ -312,6 +335,8 @@ impl ClientQueues {
             region: HashMap::new(),
             affine: vec![None; n],
             votes: vec![BTreeMap::new(); n],
+            voted: HashMap::new(),
+            queued: BTreeMap::new(),
             warm: vec![false; n],
         }
     }
@@ -364,22 +389,48 @@ impl ClientQueues {
             return self.unowned.remove(&rank);
         }
         let votes = |i: usize| self.votes[i].get(c).copied().unwrap_or(0);
-        let others = if own.is_none() {
-            others()
-        } else {
-            BTreeSet::new()
-        };
-        let (g, k) = (0..self.groups.len())
-            .flat_map(|g| (0..self.groups[g].len()).map(move |k| (g, k)))
-            .min_by_key(|&(g, k)| {
-                let i = self.groups[g][k];
-                let r = self.ranks[i];
-                // Ties go to the lowest curve position.
-                match own {
-                    Some(own) => (std::cmp::Reverse(votes(i)), distance(own, r), r),
-                    None => (std::cmp::Reverse(0), u32::MAX - distance(&others, r), r),
+        // The queued tile that shows most of what `c` rendered before,
+        // else the one nearest its region; ties to the lowest curve
+        // position.
+        let i = match own {
+            Some(own) => {
+                let voted = (self.voted.get(c).into_iter().flatten().copied())
+                    .filter(|&i| self.queued.contains_key(&self.ranks[i]))
+                    .min_by_key(|&i| {
+                        let r = self.ranks[i];
+                        (std::cmp::Reverse(votes(i)), distance(own, r), r)
+                    });
+                match voted {
+                    Some(i) => i,
+                    None => {
+                        // Nearest to the region is nearest to one of its
+                        // tiles, on one side or the other.
+                        let (_, r) = own
+                            .iter()
+                            .flat_map(|&o| {
+                                let below = self.queued.range(..=o).next_back();
+                                let above = self.queued.range(o..).next();
+                                below
+                                    .into_iter()
+                                    .chain(above)
+                                    .map(move |(&r, _)| (r.abs_diff(o), r))
+                            })
+                            .min()?;
+                        self.queued[&r]
+                    }
                 }
-            })?;
+            }
+            None => {
+                let others = others();
+                *self.queued.values().min_by_key(|&&i| {
+                    let r = self.ranks[i];
+                    (u32::MAX - distance(&others, r), r)
+                })?
+            }
+        };
+        self.queued.remove(&self.ranks[i]);
+        let g = *self.group_of.get(self.affine[i].as_ref()?)?;
+        let k = self.groups[g].iter().position(|&j| j == i)?;
         Some(self.groups[g].remove(k))
     }
 }
@@ -537,6 +588,60 @@ mod tests {
         q.sort(&v, Some(&costs_reversed), &plain);
         for g in &q.groups {
             assert_eq!(g.last().copied(), g.iter().copied().min(), "{g:?}");
+        }
+    }
+
+    #[test]
+    fn a_client_takes_the_queued_tile_that_every_queued_tile_was_measured_for() {
+        // take_for's indexes against the rule measured over every queued
+        // tile: most of the client's votes, then nearest its region, then
+        // the lowest curve position; the farthest from the others for a
+        // client with no region.
+        fn distance(set: &BTreeSet<u32>, r: u32) -> u32 {
+            set.iter().map(|&o| o.abs_diff(r)).min().unwrap_or(u32::MAX)
+        }
+        let grid = TileGrid::new(256, 128, 16);
+        let camera = walk_camera(5.0);
+        let tiles = fresh_tiles(grid.count());
+        let owners = vec![None; grid.count()];
+        let v = view(&grid, &camera, &tiles, &owners);
+        let [b, a] = names();
+        let z = Name::new("client-z").unwrap();
+        for seed in 0..20u32 {
+            let mut q = ClientQueues::of(&grid);
+            q.sort(&v, Some(&previous(grid, camera)), &options());
+            let mut x = seed.wrapping_mul(2_654_435_761).wrapping_add(1);
+            let mut next = |m: u32| {
+                x = x.wrapping_mul(1_103_515_245).wrapping_add(12_345);
+                (x >> 8) % m
+            };
+            // z's region starts anywhere (after the first seeds, where it
+            // has none).
+            if seed > 2 {
+                q.handed_out(&z, next(grid.count() as u32) as usize);
+            }
+            loop {
+                let c = [&a, &b, &z][next(3) as usize].clone();
+                let own = q.region.get(&c).filter(|r| !r.is_empty()).cloned();
+                let others: BTreeSet<u32> = (q.region.iter())
+                    .filter(|(n, _)| **n != c)
+                    .flat_map(|(_, r)| r.iter().copied())
+                    .collect();
+                let votes = |i: usize| q.votes[i].get(&c).copied().unwrap_or(0);
+                let want = q.groups.iter().flatten().copied().min_by_key(|&i| {
+                    let r = q.ranks[i];
+                    match &own {
+                        Some(own) => (std::cmp::Reverse(votes(i)), distance(own, r), r),
+                        None => (std::cmp::Reverse(0), u32::MAX - distance(&others, r), r),
+                    }
+                });
+                let got = q.take_for(&c);
+                assert_eq!(got, want, "seed {seed}, {c}");
+                let Some(i) = got else { break };
+                assert!(!q.groups.iter().flatten().any(|&j| j == i), "taken out");
+                q.handed_out(&c, i);
+            }
+            assert!(q.queued.is_empty(), "every queued tile taken");
         }
     }
 

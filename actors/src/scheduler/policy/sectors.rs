@@ -129,25 +129,25 @@ fn sectors(grid: &TileGrid, focus: (f32, f32), k: usize) -> Vec<usize> {
     sector
 }
 
-/// Which of `clients` gets each sector of `sectors` (tile by tile): the
-/// clients in their order round the sectors, turned so that the most
-/// tiles stay with the client that had them before (`before`, per tile),
-/// and the sectors keep their clients while the focus drifts.
-fn owners<'c, N: PartialEq>(
-    sectors: &[usize],
-    clients: &'c [N],
-    before: &[Option<N>],
-) -> Vec<&'c N> {
+/// Which of `clients` (sorted, no repeats) gets each sector of `sectors`
+/// (tile by tile): the clients in their order round the sectors, turned
+/// so that the most tiles stay with the client that had them before
+/// (`before`, per tile), and the sectors keep their clients while the
+/// focus drifts. Each tile votes for the one turn that keeps it: one pass
+/// over the tiles, not one per turn (with a client per sector, that would
+/// be clients × tiles).
+fn owners<'c, N: Ord>(sectors: &[usize], clients: &'c [N], before: &[Option<N>]) -> Vec<&'c N> {
+    debug_assert!(clients.windows(2).all(|w| w[0] < w[1]), "clients sorted");
     let k = clients.len();
-    let kept = |turn: usize| {
-        sectors
-            .iter()
-            .zip(before)
-            .filter(|(&s, b)| b.as_ref() == Some(&clients[(s + turn) % k]))
-            .count()
-    };
+    let mut kept = vec![0usize; k];
+    for (&s, b) in sectors.iter().zip(before) {
+        if let Some(j) = b.as_ref().and_then(|b| clients.binary_search(b).ok()) {
+            // clients[(s + turn) % k] == clients[j]
+            kept[(j + k - s % k) % k] += 1;
+        }
+    }
     let turn = (0..k)
-        .max_by_key(|&t| (kept(t), std::cmp::Reverse(t)))
+        .max_by_key(|&t| (kept[t], std::cmp::Reverse(t)))
         .unwrap_or(0);
     sectors.iter().map(|&s| &clients[(s + turn) % k]).collect()
 }
@@ -208,6 +208,37 @@ mod tests {
             .map(|j| s[grid.tile_at(336 + 32 * j, 256 + 24 * j).unwrap()])
             .collect();
         assert!(along.iter().all(|&x| x == along[0]), "{along:?}");
+    }
+
+    #[test]
+    fn the_turn_is_the_one_that_keeps_most_tiles() {
+        // Against trying every turn in full, on scrambled inputs.
+        let mut x = 11u32;
+        let mut next = |m: u32| {
+            x = x.wrapping_mul(1_103_515_245).wrapping_add(12_345);
+            (x >> 8) % m
+        };
+        for _ in 0..200 {
+            let k = 1 + next(9) as usize;
+            let clients: Vec<u32> = (0..k as u32).map(|c| 3 * c + 1).collect();
+            let n = 1 + next(60) as usize;
+            let sectors: Vec<usize> = (0..n).map(|_| next(k as u32) as usize).collect();
+            let before: Vec<Option<u32>> = (0..n)
+                .map(|_| (next(4) > 0).then(|| 3 * next(k as u32 + 2) + 1))
+                .collect();
+            let kept = |turn: usize| {
+                sectors
+                    .iter()
+                    .zip(&before)
+                    .filter(|(&s, b)| b.as_ref() == Some(&clients[(s + turn) % k]))
+                    .count()
+            };
+            let turn = (0..k)
+                .max_by_key(|&t| (kept(t), std::cmp::Reverse(t)))
+                .unwrap();
+            let want: Vec<&u32> = sectors.iter().map(|&s| &clients[(s + turn) % k]).collect();
+            assert_eq!(owners(&sectors, &clients, &before), want);
+        }
     }
 
     #[test]
