@@ -410,6 +410,9 @@ struct Scheduler {
     /// of the visits until something changes that could give them a tile
     /// ([`Scheduler::wake_all`], [`Scheduler::wake`]).
     waiting: BTreeSet<usize>,
+    /// The clients of one pass of [`Scheduler::dispatch`] (kept to spare
+    /// an allocation a message).
+    pass: Vec<usize>,
     frames: BTreeMap<u64, Frame>,
     prev: Option<Previous>,
     summary: SchedulerSummary,
@@ -427,6 +430,7 @@ impl Scheduler {
             client_index: HashMap::new(),
             ready: BTreeSet::new(),
             waiting: BTreeSet::new(),
+            pass: Vec::new(),
             frames: BTreeMap::new(),
             prev: None,
             summary: SchedulerSummary::default(),
@@ -529,12 +533,15 @@ impl Scheduler {
             // The clients visited, from `rr` on round the circle; those
             // that get nothing wait (nothing else in this call gives them
             // work: other clients' tiles only take it).
-            let pass: Vec<usize> = (self.ready.range(self.rr..))
-                .chain(self.ready.range(..self.rr))
-                .copied()
-                .collect();
+            let mut pass = std::mem::take(&mut self.pass);
+            pass.clear();
+            pass.extend(
+                self.ready
+                    .range(self.rr..)
+                    .chain(self.ready.range(..self.rr)),
+            );
             let mut nothing = Vec::new();
-            for ci in pass {
+            for &ci in &pass {
                 let (node, state) = &mut self.clients[ci];
                 if state.credits == 0 {
                     continue;
@@ -634,6 +641,7 @@ impl Scheduler {
                     out.push(Out::Assigned(frame.number));
                 }
             }
+            self.pass = pass;
             for ci in nothing {
                 self.ready.remove(&ci);
                 self.waiting.insert(ci);

@@ -128,8 +128,9 @@ pub(super) struct ClientQueues {
     /// The tiles in `groups`, by curve position: a client out of tiles
     /// finds the one nearest its region here rather than by measuring
     /// every queued tile (a cost per steal that grows with the tiles, and
-    /// steals grow with the clients).
-    queued: BTreeMap<u32, usize>,
+    /// steals grow with the clients). Made at a frame's first steal, and
+    /// kept from then on.
+    queued: Option<BTreeMap<u32, usize>>,
     /// Per tile, whether the last frame rendered it without a miss (on the
     /// same grid): only such tiles go out in blocks, except to a client
     /// that holds the whole model.
@@ -169,7 +170,12 @@ impl Queues for ClientQueues {
         self.voted.clear();
         for (i, v) in self.votes.iter().enumerate() {
             for (c, _) in v.iter().filter(|(_, &k)| k > 0) {
-                self.voted.entry(c.clone()).or_default().push(i);
+                match self.voted.get_mut(c) {
+                    Some(tiles) => tiles.push(i),
+                    None => {
+                        self.voted.insert(c.clone(), vec![i]);
+                    }
+                }
             }
         }
         let costs = guide.map(|p| &p.costs);
@@ -202,12 +208,7 @@ impl Queues for ClientQueues {
             }
             self.groups[g].push(i);
         }
-        self.queued = self
-            .groups
-            .iter()
-            .flatten()
-            .map(|&i| (self.ranks[i], i))
-            .collect();
+        self.queued = None;
         for q in &mut self.groups {
             match costs {
                 // Ascending cost, ties by descending index: pop() gives the
@@ -223,7 +224,9 @@ impl Queues for ClientQueues {
     fn pick(&mut self, c: &Name, _: &mut Rng) -> Option<usize> {
         if let Some(&g) = self.group_of.get(c) {
             if let Some(i) = self.groups[g].pop() {
-                self.queued.remove(&self.ranks[i]);
+                if let Some(q) = &mut self.queued {
+                    q.remove(&self.ranks[i]);
+                }
                 return Some(i);
             }
         }
@@ -296,7 +299,9 @@ impl Queues for ClientQueues {
                         match group {
                             Some(g) => {
                                 self.groups[g].retain(|&k| k != j);
-                                self.queued.remove(&self.ranks[j]);
+                                if let Some(q) = &mut self.queued {
+                                    q.remove(&self.ranks[j]);
+                                }
                             }
                             None => {
                                 self.unowned.remove(&self.ranks[j]);
@@ -336,7 +341,7 @@ impl ClientQueues {
             affine: vec![None; n],
             votes: vec![BTreeMap::new(); n],
             voted: HashMap::new(),
-            queued: BTreeMap::new(),
+            queued: None,
             warm: vec![false; n],
         }
     }
@@ -388,6 +393,10 @@ impl ClientQueues {
             };
             return self.unowned.remove(&rank);
         }
+        let (groups, ranks) = (&self.groups, &self.ranks);
+        let queued = self
+            .queued
+            .get_or_insert_with(|| groups.iter().flatten().map(|&i| (ranks[i], i)).collect());
         let votes = |i: usize| self.votes[i].get(c).copied().unwrap_or(0);
         // The queued tile that shows most of what `c` rendered before,
         // else the one nearest its region; ties to the lowest curve
@@ -395,7 +404,7 @@ impl ClientQueues {
         let i = match own {
             Some(own) => {
                 let voted = (self.voted.get(c).into_iter().flatten().copied())
-                    .filter(|&i| self.queued.contains_key(&self.ranks[i]))
+                    .filter(|&i| queued.contains_key(&self.ranks[i]))
                     .min_by_key(|&i| {
                         let r = self.ranks[i];
                         (std::cmp::Reverse(votes(i)), distance(own, r), r)
@@ -408,27 +417,27 @@ impl ClientQueues {
                         let (_, r) = own
                             .iter()
                             .flat_map(|&o| {
-                                let below = self.queued.range(..=o).next_back();
-                                let above = self.queued.range(o..).next();
+                                let below = queued.range(..=o).next_back();
+                                let above = queued.range(o..).next();
                                 below
                                     .into_iter()
                                     .chain(above)
                                     .map(move |(&r, _)| (r.abs_diff(o), r))
                             })
                             .min()?;
-                        self.queued[&r]
+                        queued[&r]
                     }
                 }
             }
             None => {
                 let others = others();
-                *self.queued.values().min_by_key(|&&i| {
+                *queued.values().min_by_key(|&&i| {
                     let r = self.ranks[i];
                     (u32::MAX - distance(&others, r), r)
                 })?
             }
         };
-        self.queued.remove(&self.ranks[i]);
+        queued.remove(&self.ranks[i]);
         let g = *self.group_of.get(self.affine[i].as_ref()?)?;
         let k = self.groups[g].iter().position(|&j| j == i)?;
         Some(self.groups[g].remove(k))
@@ -641,7 +650,10 @@ mod tests {
                 assert!(!q.groups.iter().flatten().any(|&j| j == i), "taken out");
                 q.handed_out(&c, i);
             }
-            assert!(q.queued.is_empty(), "every queued tile taken");
+            assert!(
+                q.queued.is_some_and(|q| q.is_empty()),
+                "every queued tile taken"
+            );
         }
     }
 
