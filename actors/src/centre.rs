@@ -260,6 +260,9 @@ dir = "{certs}"
 pub fn run_centre(cfg: &Config, clients: usize) -> Result<CentreRun, ClusterError> {
     let mut cfg = cfg.clone();
     cfg.prefetch.enabled = false;
+    // The stand-ins' runtime, entered for the network's setup.
+    let rt = runtime("clients")?;
+    let _entered = rt.enter();
     let net = InProcNet::new();
     let add = |n: dray_protocol::Name, role: Role| {
         net.add_node(n.clone(), role)
@@ -328,7 +331,6 @@ pub fn run_centre(cfg: &Config, clients: usize) -> Result<CentreRun, ClusterErro
             message: format!("cannot start its thread: {e}"),
         })?;
 
-    let rt = runtime("clients")?;
     let counts = rt.block_on(async {
         let tasks: Vec<_> = client_boxes
             .into_iter()
