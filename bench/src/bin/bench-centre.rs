@@ -16,7 +16,6 @@
 use anyhow::Context;
 use clap::Parser;
 use dray_actors::centre::{run_centre, walk_config, CentreRun};
-use std::io::Write;
 use std::path::PathBuf;
 
 #[derive(Parser)]
@@ -55,18 +54,16 @@ fn main() -> anyhow::Result<()> {
         args.frames,
     )?;
     let tiles = args.width.div_ceil(args.tile_size) * args.height.div_ceil(args.tile_size);
+    // One row per run, its header only in a new file.
     let mut csv = match &args.csv {
         Some(p) => {
             let new = !p.exists();
-            let mut f = std::fs::OpenOptions::new()
+            let f = std::fs::OpenOptions::new()
                 .create(true)
                 .append(true)
                 .open(p)
                 .with_context(|| format!("opening {}", p.display()))?;
-            if new {
-                writeln!(f, "clients,frames,tiles,seconds,fps,scheduler_cpu_s,display_cpu_s,clients_cpu_s,scheduler_received,scheduler_sent")?;
-            }
-            Some(f)
+            Some(csv::WriterBuilder::new().has_headers(new).from_writer(f))
         }
         None => None,
     };
@@ -91,21 +88,9 @@ fn main() -> anyhow::Result<()> {
             r.scheduler_messages_per_cpu_s(),
             serves
         );
-        if let Some(f) = csv.as_mut() {
-            writeln!(
-                f,
-                "{},{},{},{:.4},{:.3},{:.4},{:.4},{:.4},{},{}",
-                r.clients,
-                r.frames,
-                r.tiles,
-                r.seconds,
-                r.fps,
-                r.scheduler_cpu_s,
-                r.display_cpu_s,
-                r.clients_cpu_s,
-                r.scheduler_received,
-                r.scheduler_sent
-            )?;
+        if let Some(w) = csv.as_mut() {
+            w.serialize(&r)?;
+            w.flush()?;
         }
     }
     Ok(())
