@@ -108,6 +108,16 @@ fn strings(v: &[Value], what: &str, file: &str) -> Vec<String> {
         .collect()
 }
 
+/// A container's `key` list (`command`, `args`) in the StatefulSet, as
+/// strings.
+fn container_list(container: &Value, key: &str) -> Vec<String> {
+    strings(
+        list_at(container, &[key], STATEFULSET_YAML),
+        key,
+        STATEFULSET_YAML,
+    )
+}
+
 /// One object of a file, by kind and name.
 fn object<'a>(docs: &'a [Value], kind: &str, name: &str, file: &str) -> &'a Value {
     docs.iter()
@@ -413,11 +423,7 @@ fn each_pod_runs_the_node_its_address_names() {
 fn the_pods_mount_what_the_config_names() {
     let d = Deploy::load();
     let main = d.main_container();
-    let args: Vec<String> = strings(
-        list_at(main, &["args"], STATEFULSET_YAML),
-        "args",
-        STATEFULSET_YAML,
-    );
+    let args: Vec<String> = container_list(main, "args");
     let config_path = args
         .iter()
         .position(|a| a == "--config")
@@ -809,16 +815,8 @@ fn each_pod_gets_its_own_nodes_certificate_and_never_the_ca_key() {
         std::fs::write(volume.join(k), v).unwrap();
     }
     let script = d.init_container("certs");
-    let command = strings(
-        list_at(script, &["command"], STATEFULSET_YAML),
-        "command",
-        STATEFULSET_YAML,
-    );
-    let args = strings(
-        list_at(script, &["args"], STATEFULSET_YAML),
-        "args",
-        STATEFULSET_YAML,
-    );
+    let command = container_list(script, "command");
+    let args = container_list(script, "args");
     let path = format!(
         "{}:{}",
         Path::new(DRAY).parent().unwrap().display(),
@@ -887,16 +885,8 @@ fn each_pod_gets_its_own_nodes_certificate_and_never_the_ca_key() {
 fn the_container_runs_the_node_of_its_pod() {
     let d = Deploy::load();
     let main = d.main_container();
-    let command = strings(
-        list_at(main, &["command"], STATEFULSET_YAML),
-        "command",
-        STATEFULSET_YAML,
-    );
-    let args = strings(
-        list_at(main, &["args"], STATEFULSET_YAML),
-        "args",
-        STATEFULSET_YAML,
-    );
+    let command = container_list(main, "command");
+    let args = container_list(main, "args");
     assert_eq!(
         command,
         ["dray"],

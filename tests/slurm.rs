@@ -57,11 +57,7 @@ fn rank_summary(log: &str, rank: u32) -> Option<serde_json::Value> {
 #[test]
 fn sbatch_runs_a_sharded_cluster_whose_frames_equal_dray_render() {
     if let Some(why) = slurm_missing() {
-        assert!(
-            std::env::var("DRAY_REQUIRE_SLURM").as_deref() != Ok("1"),
-            "DRAY_REQUIRE_SLURM=1 but {why}"
-        );
-        eprintln!("skipped: {why}");
+        dray_testkit::skip_unless_required("DRAY_REQUIRE_SLURM", &why);
         return;
     }
     let tmp = tempfile::tempdir().unwrap();

@@ -318,8 +318,7 @@ pub(crate) fn display_options(
 pub(crate) struct SchedulerTasks {
     pub(crate) scheduler: JoinHandle<Result<SchedulerSummary, ActorError>>,
     pub(crate) assigner: JoinHandle<Result<(), ActorError>>,
-    pub(crate) prefetcher:
-        Option<JoinHandle<Result<crate::scheduler::PrefetcherSummary, ActorError>>>,
+    prefetcher: Option<JoinHandle<Result<crate::scheduler::PrefetcherSummary, ActorError>>>,
 }
 
 /// Actor `actor`'s mailbox on `bus`, holding `capacity` messages.

@@ -31,6 +31,19 @@ async fn guard<T>(f: impl Future<Output = T>) -> T {
     tokio::time::timeout(GUARD, f).await.expect("test hung")
 }
 
+/// Why `t`'s dial to `peer` failed, once one has.
+async fn first_dial_error(t: &QuicTransport, peer: &str) -> String {
+    guard(async {
+        loop {
+            if let Some(e) = t.dial_error(&name(peer)) {
+                return e;
+            }
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+    })
+    .await
+}
+
 fn loopback() -> SocketAddr {
     "127.0.0.1:0".parse().unwrap()
 }
@@ -666,15 +679,7 @@ async fn a_second_connection_under_a_connected_name_is_refused_and_the_first_goe
     // The same through a transport: its dial is refused, saying why.
     let (_twin_bus, twin_t) = node(&twin, Role::Client).await;
     twin_t.connect(name("store-0"), addr);
-    let why = guard(async {
-        loop {
-            if let Some(e) = twin_t.dial_error(&name("store-0")) {
-                break e;
-            }
-            tokio::time::sleep(Duration::from_millis(10)).await;
-        }
-    })
-    .await;
+    let why = first_dial_error(&twin_t, "store-0").await;
     assert!(why.contains("already connected"), "{why}");
     // The twins leave; the first connection carries on.
     twin_t.shutdown().await;
@@ -793,15 +798,7 @@ async fn a_peer_dialed_by_name_is_looked_up_before_each_dial() {
     let nowhere = DialTarget::new("no-such-peer.invalid", 7400);
     assert!(matches!(nowhere, DialTarget::Host { .. }));
     ta.connect(name("node-z"), nowhere);
-    let why = guard(async {
-        loop {
-            if let Some(e) = ta.dial_error(&name("node-z")) {
-                return e;
-            }
-            tokio::time::sleep(Duration::from_millis(20)).await;
-        }
-    })
-    .await;
+    let why = first_dial_error(&ta, "node-z").await;
     assert!(
         why.contains("cannot look up host \"no-such-peer.invalid\""),
         "{why}"

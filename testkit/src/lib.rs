@@ -7,7 +7,9 @@
 //! - [`real_model`]: a real model shipped in `tests/data/`, decompressed;
 //! - [`free_ports`]: loopback ports for QUIC nodes;
 //! - [`browser`]: a headless Chromium over WebDriver, and a `dray view`
-//!   process whose viewer it opens.
+//!   process whose viewer it opens;
+//! - [`skip_unless_required`]: a test whose tool this machine lacks skips,
+//!   unless CI says the tool must be there.
 //!
 //! Panics on failure: a fixture that cannot be made fails the test.
 
@@ -18,6 +20,17 @@ use dray_scene::generate::PlantParams;
 use dray_scene::preprocess::{plant_database, preprocess, PreprocessOptions};
 use dray_scene::progress::Progress;
 use std::path::{Path, PathBuf};
+
+/// For a test that cannot run here because `why` (a tool or permission
+/// is missing): it says so and the test returns, unless the variable
+/// `require` is "1" (`.ci/run` sets it where the tool must be there),
+/// where it fails naming both.
+pub fn skip_unless_required(require: &str, why: &str) {
+    if std::env::var(require).as_deref() == Ok("1") {
+        panic!("{require}=1 but {why}");
+    }
+    eprintln!("skipped: {why}");
+}
 
 /// A plant and its database in a temporary directory, removed on drop.
 pub struct TestDb {
