@@ -189,6 +189,17 @@ pub(crate) enum Command {
         /// Kernel instruction set for the clients (default: the best).
         #[arg(long, value_parser = parse_isa)]
         isa: Option<Isa>,
+        /// Run on a virtual clock: each client's tracing and decoding take
+        /// the time a cost model measured on this machine says (scaled by
+        /// `clients.speed`), as if every client had machines of its own
+        /// (docs/experiments.md, "The virtual engine").
+        #[arg(long = "virtual")]
+        virtual_clock: bool,
+        /// With --virtual: every client shares one host of N cores, as the
+        /// clients of a plain `dray sim` share this machine's (to compare
+        /// the two), instead of each having a machine of its own.
+        #[arg(long, value_name = "N", requires = "virtual_clock", value_parser = clap::value_parser!(u32).range(1..=4096))]
+        host_cores: Option<u32>,
         /// Print the summary as one JSON line.
         #[arg(long)]
         json: bool,

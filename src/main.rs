@@ -312,6 +312,8 @@ fn run(cli: Cli) -> Result<ExitCode> {
             save_frames,
             clients,
             isa,
+            virtual_clock,
+            host_cores,
             json,
         } => {
             let mut cfg = dray_config::Config::load(&config)?;
@@ -327,8 +329,28 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 keep_frame_metrics: json,
                 ..RunOptions::default()
             };
-            let run = runtime()?.block_on(dray_actors::nodes::sim(&cfg, &opts))?;
-            print_report(&run.to_json(), &[], json);
+            if virtual_clock {
+                let kernel = isa.unwrap_or_else(dray_trace::render::Isa::detect);
+                let clients = clients.unwrap_or(cfg.clients.count);
+                let threads = dray_actors::costs::calibration_threads(&cfg, clients, host_cores);
+                let mut cal = dray_actors::costs::calibrate(&cfg, kernel, threads)
+                    .map_err(|e| anyhow::anyhow!("calibrating the cost model: {e}"))?;
+                if host_cores.is_some() {
+                    dray_actors::costs::measure_host_overhead(&cfg, clients, kernel, &mut cal.model)
+                        .map_err(|e| anyhow::anyhow!("calibrating the cost model: {e}"))?;
+                }
+                let run = dray_actors::costs::VirtualRun {
+                    cost: cal.model,
+                    host_cores,
+                };
+                let run = dray_actors::nodes::sim_virtual(&cfg, &opts, run)?;
+                let mut report = run.to_json();
+                report["calibration"] = serde_json::to_value(&cal)?;
+                print_report(&report, &[], json);
+            } else {
+                let run = runtime()?.block_on(dray_actors::nodes::sim(&cfg, &opts))?;
+                print_report(&run.to_json(), &[], json);
+            }
         }
         Command::Experiment {
             file,

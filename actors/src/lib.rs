@@ -37,6 +37,7 @@
 
 pub mod centre;
 pub mod client;
+pub mod costs;
 pub mod display;
 pub mod names;
 pub mod nodes;

@@ -102,6 +102,10 @@ pub struct RunOptions {
     pub keep_frame_metrics: bool,
     /// The kernel's instruction set (default: the best this CPU runs).
     pub isa: Option<Isa>,
+    /// Show only this many of the run's first frames.
+    pub max_frames: Option<usize>,
+    /// Run on the virtual clock: [`sim_virtual`] sets it.
+    pub virtual_clock: Option<crate::costs::VirtualRun>,
 }
 
 impl Default for RunOptions {
@@ -111,6 +115,8 @@ impl Default for RunOptions {
             keep_frames: false,
             keep_frame_metrics: true,
             isa: None,
+            max_frames: None,
+            virtual_clock: None,
         }
     }
 }
@@ -281,6 +287,13 @@ fn client_options(cfg: &Config, opts: &RunOptions) -> Result<ClientOptions, Clus
         stores: store_routes(cfg)?,
         scheduler: names::scheduler(),
         display: names::display(),
+        virtual_clock: opts.virtual_clock.map(|v| crate::costs::VirtualClock {
+            cost: v.cost.scaled(c.speed),
+            voxels: crate::client::shared_voxels::DecodedVoxels::new(),
+            cores: v
+                .host_cores
+                .map(|n| std::sync::Arc::new(tokio::sync::Semaphore::new(n as usize))),
+        }),
     })
 }
 
@@ -298,7 +311,11 @@ pub(crate) fn display_options(
         scheduler: names::scheduler(),
         width: cfg.render.width,
         height: cfg.render.height,
-        cameras: frame_cameras(cfg)?,
+        cameras: {
+            let mut cameras = frame_cameras(cfg)?;
+            cameras.truncate(opts.max_frames.unwrap_or(usize::MAX).max(1));
+            cameras
+        },
         settings: crate::settings::wire_settings(&cfg.render),
         max_samples: cfg.display.max_samples,
         web_token: std::env::var(WEB_TOKEN_ENV).ok(),
@@ -504,9 +521,14 @@ pub async fn sim(cfg: &Config, opts: &RunOptions) -> Result<RunSummary, ClusterE
         .collect::<Result<_, ClusterError>>()?;
     let sched = spawn_scheduler(cfg, sched_boxes)?;
     let copts = client_options(cfg, opts)?;
+    // On the virtual clock a client's render threads are tasks of its own
+    // thread (`spawn_local`), so the client is one too.
     let client_tasks: Vec<_> = client_boxes
         .into_iter()
-        .map(|mb| tokio::spawn(run_client(mb, copts.clone())))
+        .map(|mb| match copts.virtual_clock {
+            Some(_) => tokio::task::spawn_local(run_client(mb, copts.clone())),
+            None => tokio::spawn(run_client(mb, copts.clone())),
+        })
         .collect();
     info!(clients, stores = stores.len(), "simulated cluster started");
     // A stop signal ends the display (an interactive run has no other end
@@ -541,6 +563,32 @@ pub async fn sim(cfg: &Config, opts: &RunOptions) -> Result<RunSummary, ClusterE
         clients: client_summaries,
         stores: store_summaries,
     })
+}
+
+/// [`sim`] on the virtual clock: a fresh single-threaded runtime whose
+/// clock is paused, so that time moves only by the cost model's charges,
+/// the links' and disks' models and the actors' own timers; waiting for
+/// real work (a blocking read, a decode) never moves it. Every client's
+/// rendering is real, and all of it runs on the calling thread. Errors as
+/// [`sim`]'s.
+pub fn sim_virtual(
+    cfg: &Config,
+    opts: &RunOptions,
+    run: crate::costs::VirtualRun,
+) -> Result<RunSummary, ClusterError> {
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .start_paused(true)
+        .build()
+        .map_err(|e| ClusterError::Node {
+            node: "sim".into(),
+            message: format!("cannot start the virtual runtime: {e}"),
+        })?;
+    let opts = RunOptions {
+        virtual_clock: Some(run),
+        ..opts.clone()
+    };
+    tokio::task::LocalSet::new().block_on(&rt, sim(cfg, &opts))
 }
 
 /// The node a role and index name.

@@ -576,6 +576,12 @@ pub struct ClientsConfig {
     /// renders it as empty.
     #[serde(default)]
     pub corrupt_voxel: CorruptVoxel,
+    /// How fast a client traces and decodes relative to the core the
+    /// virtual engine's cost model was measured on (`dray sim --virtual`,
+    /// `engine = "virtual"`): 2 is twice as fast. Real runs go as fast as
+    /// their machines and ignore it. Default 1.
+    #[serde(default = "default_speed")]
+    pub speed: f64,
 }
 
 /// The most tiles a client asks for ahead when the config does not say.
@@ -595,6 +601,9 @@ fn default_miss() -> MissMode {
 }
 fn default_inflight() -> u32 {
     64
+}
+fn default_speed() -> f64 {
+    1.0
 }
 fn default_tiles_ahead() -> u32 {
     1
@@ -1028,6 +1037,12 @@ impl Config {
             return Err(invalid(
                 "clients.max_tiles_ahead",
                 format!("{most} is over 64"),
+            ));
+        }
+        if !(c.speed.is_finite() && (1e-3..=1e3).contains(&c.speed)) {
+            return Err(invalid(
+                "clients.speed",
+                format!("{} is not in 0.001..=1000", c.speed),
             ));
         }
         if let Some(bind) = c.bind.as_ref().filter(|b| b.parse::<IpAddr>().is_err()) {

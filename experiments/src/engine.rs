@@ -1,7 +1,8 @@
 //! Running one point once, on one engine, and collecting what the display
 //! reports (or, for `render`, the same figures of the frames it traced).
 
-use crate::spec::Engine;
+use crate::spec::{Engine, VirtualEngine};
+use dray_actors::costs::{Calibration, CostModel, VirtualRun};
 use dray_actors::nodes::RunOptions;
 use dray_config::Config;
 use std::path::Path;
@@ -23,18 +24,88 @@ pub(crate) enum RunFailure {
     Failed(String),
 }
 
+/// The `virtual` engine's cost models, measured once per kind of run.
+pub(crate) struct CostModels {
+    spec: VirtualEngine,
+    /// Calibrations by what they depend on: the model, the render
+    /// settings, the kernel, the threads and (on one host) the clients.
+    measured: std::collections::BTreeMap<String, Calibration>,
+}
+
+/// The file in a run's directory that holds the cost model it ran with.
+pub(crate) const CALIBRATION_JSON: &str = "calibration.json";
+
+impl CostModels {
+    pub fn new(spec: VirtualEngine) -> CostModels {
+        CostModels {
+            spec,
+            measured: Default::default(),
+        }
+    }
+
+    /// The cost model for `cfg`: the file's fixed one, or measured on this
+    /// machine (once for every run alike).
+    fn for_run(&mut self, cfg: &Config) -> Result<(CostModel, Option<Calibration>), String> {
+        if let Some(fixed) = self.spec.cost {
+            return Ok((fixed, None));
+        }
+        let isa = dray_trace::render::Isa::detect();
+        let clients = cfg.clients.count;
+        let threads = dray_actors::costs::calibration_threads(cfg, clients, self.spec.host_cores);
+        let key = format!(
+            "{}|{}|{}|{threads}|{}",
+            cfg.scene.database.display(),
+            format!("{:?}", cfg.render),
+            isa.name(),
+            self.spec.host_cores.map_or(0, |_| clients),
+        );
+        if let Some(c) = self.measured.get(&key) {
+            return Ok((c.model, Some(c.clone())));
+        }
+        let mut c = dray_actors::costs::calibrate(cfg, isa, threads)?;
+        if self.spec.host_cores.is_some() {
+            dray_actors::costs::measure_host_overhead(cfg, clients, isa, &mut c.model)?;
+        }
+        self.measured.insert(key, c.clone());
+        Ok((c.model, Some(c)))
+    }
+
+    /// The virtual run of `cfg`, its cost model written beside
+    /// `config_file`.
+    fn prepare(&mut self, cfg: &Config, config_file: &Path) -> Result<VirtualRun, RunFailure> {
+        let (cost, calibration) = self
+            .for_run(cfg)
+            .map_err(|e| RunFailure::Failed(format!("calibrating the cost model: {e}")))?;
+        let record = serde_json::json!({
+            "model": cost,
+            "calibration": calibration,
+            "host_cores": self.spec.host_cores,
+            "speed": cfg.clients.speed,
+        });
+        let file = config_file.with_file_name(CALIBRATION_JSON);
+        std::fs::write(&file, format!("{record:#}\n"))
+            .map_err(|e| RunFailure::Failed(format!("{}: {e}", file.display())))?;
+        Ok(VirtualRun {
+            cost,
+            host_cores: self.spec.host_cores,
+        })
+    }
+}
+
 /// Runs `cfg` (written at `config_file`, which the `cluster` engine's
 /// processes read) until the display has shown every frame. `dray` is the
-/// binary the `cluster` engine starts nodes of.
+/// binary the `cluster` engine starts nodes of; `costs` gives the
+/// `virtual` engine its cost model (which is written beside the config).
 pub(crate) fn run(
     engine: Engine,
     cfg: &Config,
     config_file: &Path,
     dray: Option<&Path>,
     rt: &tokio::runtime::Runtime,
+    costs: &mut CostModels,
     interrupted: &dyn Fn() -> bool,
 ) -> Result<RunOutput, RunFailure> {
-    let start = Instant::now();
+    let mut start = Instant::now();
     let summary = match engine {
         Engine::Sim => {
             let run = rt
@@ -43,6 +114,15 @@ pub(crate) fn run(
             run.display.to_json()
         }
         Engine::Render => render(cfg).map_err(RunFailure::Failed)?,
+        Engine::Virtual => {
+            let run = costs.prepare(cfg, config_file)?;
+            // Calibrating is not the run.
+            start = Instant::now();
+            dray_actors::nodes::sim_virtual(cfg, &RunOptions::default(), run)
+                .map_err(|e| RunFailure::Failed(e.to_string()))?
+                .display
+                .to_json()
+        }
         Engine::Cluster => {
             let dray = dray.ok_or_else(|| {
                 RunFailure::Failed("engine \"cluster\" needs the dray binary to start nodes".into())
@@ -61,7 +141,15 @@ pub(crate) fn run(
             report.summary
         }
     };
-    let wall_s = start.elapsed().as_secs_f64();
+    finished(summary, start.elapsed().as_secs_f64(), interrupted)
+}
+
+/// A run's output, or why it has none: it stopped before every frame.
+fn finished(
+    summary: serde_json::Value,
+    wall_s: f64,
+    interrupted: &dyn Fn() -> bool,
+) -> Result<RunOutput, RunFailure> {
     if summary["complete"] != serde_json::Value::Bool(true) {
         if interrupted() {
             return Err(RunFailure::Interrupted);

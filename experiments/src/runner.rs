@@ -151,6 +151,7 @@ pub fn run(file: &Path, opts: &Options) -> Result<Report, ExperimentError> {
     });
     let is_interrupted = || interrupted.load(Ordering::SeqCst);
 
+    let mut costs = engine::CostModels::new(exp.virtual_engine.clone());
     let started = now();
     let progress = Progress::new(todo.len());
     let mut runs_done = 0;
@@ -172,6 +173,7 @@ pub fn run(file: &Path, opts: &Options) -> Result<Report, ExperimentError> {
             &config_file,
             opts.dray.as_deref(),
             &rt,
+            &mut costs,
             &is_interrupted,
         ) {
             Ok(out) => {

@@ -33,10 +33,14 @@ pub enum Engine {
     /// loaded, on as many threads as the clients have together (`dray
     /// render --path`): the baseline a cluster's efficiency is measured by.
     Render,
+    /// `sim` on a virtual clock: tracing and decoding charged from a cost
+    /// model calibrated on this machine, as if each client had a machine
+    /// of its own (`dray sim --virtual`).
+    Virtual,
 }
 
 /// Every engine, in the order the documentation lists them.
-pub const ENGINES: [Engine; 3] = [Engine::Sim, Engine::Cluster, Engine::Render];
+pub const ENGINES: [Engine; 4] = [Engine::Sim, Engine::Cluster, Engine::Render, Engine::Virtual];
 
 /// The key that sweeps the engine, like a config key.
 pub const ENGINE: &str = "engine";
@@ -48,6 +52,7 @@ impl Engine {
             Engine::Sim => "sim",
             Engine::Cluster => "cluster",
             Engine::Render => "render",
+            Engine::Virtual => "virtual",
         }
     }
 
@@ -171,6 +176,20 @@ pub struct Experiment {
     pub sweep: Vec<(String, Vec<toml::Value>)>,
     /// The plots.
     pub plots: Vec<Plot>,
+    /// How the `virtual` engine runs.
+    pub virtual_engine: VirtualEngine,
+}
+
+/// The `[virtual]` table: how the `virtual` engine runs.
+#[derive(Clone, Debug, Default, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct VirtualEngine {
+    /// Every client on one host of this many cores (to compare with
+    /// `sim` on this machine); none: a machine each.
+    pub host_cores: Option<u32>,
+    /// A fixed cost model instead of calibrating one (every key of
+    /// [`dray_actors::costs::CostModel`]): runs that repeat exactly.
+    pub cost: Option<dray_actors::costs::CostModel>,
 }
 
 #[derive(Deserialize)]
@@ -191,6 +210,8 @@ struct File {
     sweep: toml::Table,
     #[serde(default)]
     plot: Vec<Plot>,
+    #[serde(default, rename = "virtual")]
+    virtual_engine: VirtualEngine,
 }
 
 fn one() -> u32 {
@@ -305,6 +326,15 @@ impl Experiment {
         for (i, p) in raw.plot.iter().enumerate() {
             check_plot(&file, i, p, &sweep)?;
         }
+        if let Some(cost) = &raw.virtual_engine.cost {
+            cost.validate("virtual.cost")
+                .map_err(|e| ExperimentError::invalid(&file, "virtual.cost", e))?;
+        }
+        if let Some(n) = raw.virtual_engine.host_cores {
+            if !(1..=4096).contains(&n) {
+                return Err(bad("virtual.host_cores", format!("{n} is not in 1..=4096")));
+            }
+        }
         Ok(Experiment {
             name: raw.name,
             description: raw.description,
@@ -316,6 +346,7 @@ impl Experiment {
             set,
             sweep,
             plots: raw.plot,
+            virtual_engine: raw.virtual_engine,
             file,
         })
     }

@@ -22,6 +22,74 @@ pub(crate) struct RunInfo<'a> {
     pub interrupted: bool,
 }
 
+/// The `virtual` engine's cost models, from its runs' `calibration.json`:
+/// one row per distinct model, with the runs that used it.
+fn cost_models(dir: &Path) -> String {
+    let mut models: Vec<(serde_json::Value, Vec<String>)> = Vec::new();
+    let mut runs: Vec<_> = std::fs::read_dir(dir.join("runs"))
+        .into_iter()
+        .flatten()
+        .flatten()
+        .map(|e| e.path())
+        .collect();
+    runs.sort();
+    for run in runs {
+        let file = run.join(crate::engine::CALIBRATION_JSON);
+        let Some(v) = std::fs::read_to_string(&file)
+            .ok()
+            .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+        else {
+            continue;
+        };
+        let name = run
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        match models.iter_mut().find(|(m, _)| *m == v) {
+            Some((_, names)) => names.push(name),
+            None => models.push((v, vec![name])),
+        }
+    }
+    if models.is_empty() {
+        return String::new();
+    }
+    let mut s = String::from(
+        "## Cost model of the virtual engine\n\n\
+         Nanoseconds per unit of work of a client core, measured on this machine \
+         (`calibrated`: traced tiles of the run's views on `threads` threads at once, \
+         fitted by least squares with fit R²; `fixed`: given by the file), \
+         before `clients.speed` divides them. Each run's: `runs/*/calibration.json`.\n\n\
+         | runs | source | threads | tiles | R² | tile | primary ray | secondary ray | voxel visit | decoded byte | host pixel | host cores | speed |\n\
+         |---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
+    );
+    for (v, names) in &models {
+        let m = &v["model"];
+        let c = &v["calibration"];
+        let num = |x: &serde_json::Value| x.as_f64().map_or("–".into(), |f| format!("{}", round3(f)));
+        let runs = if names.len() > 3 {
+            format!("{} … {} ({})", names[0], names[names.len() - 1], names.len())
+        } else {
+            names.join(", ")
+        };
+        s += &format!(
+            "| {runs} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
+            if c.is_null() { "fixed" } else { "calibrated" },
+            num(&c["threads"]),
+            num(&c["tiles"]),
+            num(&c["r2"]),
+            num(&m["ns_per_tile"]),
+            num(&m["ns_per_primary_ray"]),
+            num(&m["ns_per_secondary_ray"]),
+            num(&m["ns_per_voxel_visit"]),
+            num(&m["ns_per_decoded_byte"]),
+            num(&m["ns_per_pixel_host"]),
+            v["host_cores"].as_u64().map_or("–".into(), |n| n.to_string()),
+            num(&v["speed"]),
+        );
+    }
+    s + "\n"
+}
+
 /// The CPU model, cores and the kernel's instruction set.
 fn machine() -> String {
     let cpu = std::fs::read_to_string("/proc/cpuinfo")
@@ -184,6 +252,9 @@ pub(crate) fn write(
         s += "\n\n";
     }
 
+    if exp.engines().contains(&crate::spec::Engine::Virtual) {
+        s += &cost_models(dir);
+    }
     s += "## Medians\n\nThe median over the repeats of each point; `runs` is how many there are.\n\n";
     let mut header: Vec<String> = exp.sweep_keys().iter().map(|k| format!("`{k}`")).collect();
     header.push("runs".into());

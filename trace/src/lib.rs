@@ -11,6 +11,8 @@
 //!   and JSON.
 //! - [`clock`]: a cheap clock for timing single packets.
 //! - [`image`]: PNG, and the depth/primitive-id comparison formats.
+//! - [`work`]: tracing work counted per thread, for a virtual clock's
+//!   cost model.
 
 pub mod accel;
 pub mod camera;
@@ -22,3 +24,4 @@ mod quad;
 pub mod render;
 pub mod report;
 pub mod tile;
+pub mod work;

@@ -337,6 +337,8 @@ async fn drive<const N: usize, const BW: u32>(
     let mut stats = TileStats::default();
     let mut missed = std::collections::HashSet::new();
     let mut fs = FrameStats::default();
+    let mut flushed = crate::work::Work::default();
+    crate::work::tile_started();
     let touched: Vec<AtomicU64> = (0..ctx.top.voxel_count.div_ceil(64))
         .map(|_| AtomicU64::new(0))
         .collect();
@@ -370,6 +372,7 @@ async fn drive<const N: usize, const BW: u32>(
             }
             None => {
                 // Nothing can run: wait for the next voxel.
+                crate::work::flush(&fs, &mut flushed);
                 let started = Instant::now();
                 let Some((id, result)) = inflight.next().await else {
                     break;
@@ -400,6 +403,7 @@ async fn drive<const N: usize, const BW: u32>(
                 match mode {
                     MissMode::Block => {
                         stats.requested += 1;
+                        crate::work::flush(&fs, &mut flushed);
                         let started = Instant::now();
                         let voxel = loader.load(id).await?;
                         stats.stall += started.elapsed();
@@ -418,6 +422,7 @@ async fn drive<const N: usize, const BW: u32>(
             }
         }
     }
+    crate::work::flush(&fs, &mut flushed);
     stats.primary_rays = fs.primary_rays;
     stats.shadow_rays = fs.shadow_rays;
     stats.reflection_rays = fs.reflection_rays;

@@ -126,7 +126,7 @@ pub(crate) struct Decoded {
     pub id: u32,
     pub store: Address,
     pub bytes: u64,
-    pub result: Result<PreparedVoxel, String>,
+    pub result: Result<Arc<PreparedVoxel>, String>,
 }
 
 /// What happens to voxels no store serves intact, and who hears of them.
@@ -162,7 +162,11 @@ pub(super) fn empty_voxel(id: u32, bounds: Aabb) -> PreparedVoxel {
 }
 
 /// Checks a blob against its manifest entry, decodes and prepares it.
-pub(crate) fn decode(id: u32, entry: &VoxelEntry, blob: &[u8]) -> Result<PreparedVoxel, String> {
+pub(crate) fn decode(
+    id: u32,
+    entry: &VoxelEntry,
+    blob: &[u8],
+) -> Result<Arc<PreparedVoxel>, String> {
     if blob.len() as u64 != entry.compressed_bytes {
         return Err(format!(
             "{} bytes, the manifest says {}",
@@ -179,7 +183,7 @@ pub(crate) fn decode(id: u32, entry: &VoxelEntry, blob: &[u8]) -> Result<Prepare
         dray_scene::voxel::VoxelError::ChecksumMismatch { .. } => "checksum mismatch".to_string(),
         e => format!("cannot decode: {e}"),
     })?;
-    Ok(PreparedVoxel::new(id, &v))
+    Ok(Arc::new(PreparedVoxel::new(id, &v)))
 }
 
 #[derive(Debug)]
@@ -511,7 +515,7 @@ impl Loader {
         }
         match d.result {
             Ok(v) => {
-                let (v, freed) = self.cache.insert(Arc::new(v));
+                let (v, freed) = self.cache.insert(v);
                 let _ = freed;
                 self.stats.fetched += 1;
                 let raw = self

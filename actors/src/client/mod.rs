@@ -29,6 +29,7 @@ mod ahead;
 mod batch;
 pub mod cache;
 mod loader;
+pub mod shared_voxels;
 mod state;
 mod worker;
 
@@ -49,7 +50,8 @@ use std::sync::Arc;
 use tokio::sync::mpsc;
 use tokio::time::{timeout, timeout_at, Duration, Instant};
 use tracing::{debug, info, warn};
-use worker::{render_thread, TileJob, TileResult, WorkerCtx};
+use crate::costs::VirtualClock;
+use worker::{render_loop, render_thread, Meter, TileJob, TileResult, WorkerCtx};
 
 /// How long to wait for a store's manifest before asking another store.
 pub const MANIFEST_TIMEOUT: Duration = Duration::from_secs(5);
@@ -95,6 +97,20 @@ pub struct ClientOptions {
     /// A voxel no store serves intact: fail its tiles (the display ends
     /// the run) or render it as empty.
     pub corrupt_voxel: dray_config::CorruptVoxel,
+    /// Run on the virtual clock: render threads are tasks charged by the
+    /// cost model, and decodes share their voxels with the process's
+    /// other clients ([`crate::costs`]).
+    pub virtual_clock: Option<VirtualClock>,
+}
+
+/// Checks a blob against its manifest entry, decodes and prepares it, as
+/// the client does (for calibrating what that costs).
+pub fn decode_voxel(
+    id: u32,
+    entry: &dray_scene::db::manifest::VoxelEntry,
+    blob: &[u8],
+) -> Result<std::sync::Arc<dray_trace::accel::PreparedVoxel>, String> {
+    loader::decode(id, entry, blob)
 }
 
 /// What a client did, returned when it stops.
@@ -125,6 +141,9 @@ pub struct ClientSummary {
     /// Voxels no store served intact (rendered as empty when
     /// `clients.corrupt_voxel` is "skip").
     pub voxels_lost: u64,
+    /// CPU time of the render threads (OS threads only; none on the
+    /// virtual clock), seconds.
+    pub render_cpu_s: f64,
 }
 
 /// Sends messages in order from a task of their own, so that the actor
@@ -169,8 +188,38 @@ struct Outlets {
     decoded: mpsc::UnboundedSender<Decoded>,
     /// Each render thread's queue of tiles.
     threads: Vec<mpsc::UnboundedSender<TileJob>>,
+    virtual_clock: Option<VirtualClock>,
+    /// On the virtual clock: the client's work beside its render threads.
+    background: Option<mpsc::UnboundedSender<Background>>,
     group: Arc<AtomicUsize>,
     in_progress: Arc<AtomicUsize>,
+}
+
+/// On the virtual clock, what a client's machine does beside tracing,
+/// charged in order on one lane: decoding a voxel (delivered when done),
+/// and where the clients share one host, what its other actors spend on
+/// finished tiles. One lane, not a timer each, so that tokio's
+/// whole-millisecond timers round its total once, not every item.
+enum Background {
+    Decode(Duration, Decoded),
+    Host(Duration),
+}
+
+async fn background_lane(
+    mut work: mpsc::UnboundedReceiver<Background>,
+    decoded: mpsc::UnboundedSender<Decoded>,
+    cores: Option<Arc<tokio::sync::Semaphore>>,
+) {
+    let mut overslept = Duration::ZERO;
+    while let Some(w) = work.recv().await {
+        match w {
+            Background::Decode(cost, d) => {
+                worker::charge(cost, &mut overslept, cores.as_deref()).await;
+                let _ = decoded.send(d);
+            }
+            Background::Host(cost) => worker::charge(cost, &mut overslept, cores.as_deref()).await,
+        }
+    }
 }
 
 impl Outlets {
@@ -194,6 +243,18 @@ impl Outlets {
                 entry,
                 blob,
             } => {
+                if let Some((v, lane)) = self.virtual_clock.as_ref().zip(self.background.as_ref()) {
+                    // Decoded here, shared, and delivered when the cost
+                    // model says a decoder would be done.
+                    let decoded = Decoded {
+                        id,
+                        store,
+                        bytes: blob.len() as u64,
+                        result: v.voxels.get_or_decode(id, &entry, &blob),
+                    };
+                    let _ = lane.send(Background::Decode(v.cost.decode(entry.raw_bytes), decoded));
+                    return;
+                }
                 let tx = self.decoded.clone();
                 tokio::task::spawn_blocking(move || {
                     let result = loader::decode(id, &entry, &blob);
@@ -215,6 +276,12 @@ impl Outlets {
             }
         }
     }
+}
+
+/// A render thread: an OS thread, or a task on the virtual clock.
+enum RenderThread {
+    Os(std::thread::JoinHandle<Duration>),
+    Virtual(tokio::task::JoinHandle<()>),
 }
 
 enum Start<T> {
@@ -346,8 +413,14 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
         control: sender(me.clone(), "control message"),
         tiles: sender(me.clone(), "finished tile"),
         fetches: sender(me.clone(), "voxel fetch"),
+        background: opts.virtual_clock.as_ref().map(|v| {
+            let (tx, rx) = mpsc::unbounded_channel();
+            tokio::spawn(background_lane(rx, decoded_tx.clone(), v.cores.clone()));
+            tx
+        }),
         decoded: decoded_tx,
         threads: Vec::with_capacity(threads),
+        virtual_clock: opts.virtual_clock.clone(),
         group: group.clone(),
         in_progress: in_progress.clone(),
     };
@@ -362,15 +435,26 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
             stop: stop.clone(),
             results: done_tx.clone(),
             group: group.clone(),
+            cores: opts.virtual_clock.as_ref().and_then(|v| v.cores.clone()),
         };
-        let h = std::thread::Builder::new()
-            .name(format!("render-{i}"))
-            .spawn(move || render_thread(ctx, i, rx))
-            .map_err(|source| ActorError::Io {
-                actor: actor.clone(),
-                path: format!("render thread {i}"),
-                source,
-            })?;
+        let h = match &opts.virtual_clock {
+            Some(v) => RenderThread::Virtual(tokio::task::spawn_local(render_loop(
+                ctx,
+                i,
+                rx,
+                Meter::Model(v.cost),
+            ))),
+            None => RenderThread::Os(
+                std::thread::Builder::new()
+                    .name(format!("render-{i}"))
+                    .spawn(move || render_thread(ctx, i, rx))
+                    .map_err(|source| ActorError::Io {
+                        actor: actor.clone(),
+                        path: format!("render thread {i}"),
+                        source,
+                    })?,
+            ),
+        };
         outlets.threads.push(tx);
         handles.push(h);
     }
@@ -406,7 +490,16 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
             },
             Some(req) = req_rx.recv() => c.voxel_wanted(req, &mut out),
             Some(d) = decoded_rx.recv() => c.decoded(d, &mut out),
-            Some(tiles) = done_rx.recv() => c.tiles_finished(tiles, &mut link, &mut out),
+            Some(tiles) = done_rx.recv() => {
+                let host = outlets.virtual_clock.as_ref().filter(|v| v.cores.is_some());
+                if let Some((v, lane)) = host.zip(outlets.background.as_ref()) {
+                    // What the host's other actors spend on these tiles
+                    // takes its cores too.
+                    let pixels = tiles.iter().map(|t| u64::from(t.job.tile.w) * u64::from(t.job.tile.h)).sum();
+                    let _ = lane.send(Background::Host(v.cost.host(pixels)));
+                }
+                c.tiles_finished(tiles, &mut link, &mut out)
+            }
             _ = tick.tick() => c.tick(&mut out),
         }
     }
@@ -418,19 +511,27 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
     drop(outlets);
     drop(req_rx);
     drop(done_rx);
-    let joined = tokio::task::spawn_blocking(move || {
-        handles
-            .into_iter()
-            .map(|h| h.join().is_ok())
-            .collect::<Vec<bool>>()
-            .into_iter()
-            .all(|ok| ok)
-    })
-    .await;
-    if !matches!(joined, Ok(true)) {
+    let mut all_ok = true;
+    let mut render_cpu = Duration::ZERO;
+    for h in handles {
+        all_ok &= match h {
+            RenderThread::Os(h) => match tokio::task::spawn_blocking(move || h.join()).await {
+                Ok(Ok(cpu)) => {
+                    render_cpu += cpu;
+                    true
+                }
+                _ => false,
+            },
+            RenderThread::Virtual(h) => h.await.is_ok(),
+        };
+    }
+    if !all_ok {
         warn!(%actor, "a render thread panicked");
     }
-    let summary = c.summary();
+    let summary = ClientSummary {
+        render_cpu_s: render_cpu.as_secs_f64(),
+        ..c.summary()
+    };
     info!(%actor, ?summary, retries = c.retries(), "client stopped");
     Ok(summary)
 }

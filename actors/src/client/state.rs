@@ -347,7 +347,7 @@ fn job(a: AssignTile, diagonal: f32, isa: Isa) -> TileJob {
         settings: Arc::new(kernel_settings(&a.settings, diagonal, 1, isa)),
         want_depth: a.settings.want_depth,
         want_prim_ids: a.settings.want_prim_ids,
-        assigned: std::time::Instant::now(),
+        assigned: Instant::now(),
     }
 }
 

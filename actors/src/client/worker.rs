@@ -1,11 +1,14 @@
 //! Render threads: dedicated OS threads (tracing is CPU bound), each
-//! running a small executor over its tiles' futures. In suspend mode a
+//! running a small executor over its tiles' futures; in the virtual
+//! engine, tasks on the virtual clock that charge their tracing to it
+//! ([`Meter::Model`]). In suspend mode a
 //! thread keeps up to `tiles_in_progress` tiles going, so that while every
 //! packet of one tile waits for voxels it traces another; in block mode it
 //! renders one tile at a time and stalls on each miss.
 
 use super::loader::{Fetched, Shared, TileLoader};
 use dray_protocol::TileRect;
+use crate::costs::CostModel;
 use dray_trace::accel::TopLevel;
 use dray_trace::camera::Camera;
 use dray_trace::render::{PacketChooser, Packets, RenderSettings};
@@ -16,8 +19,8 @@ use std::cell::Cell;
 use std::rc::Rc;
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::Arc;
-use std::time::Instant;
 use tokio::sync::mpsc;
+use tokio::time::Instant;
 
 /// One tile to render.
 #[derive(Debug)]
@@ -68,6 +71,9 @@ pub(crate) struct WorkerCtx {
     /// once this thread renders no other tile of one of its frames. The
     /// actor changes it as the tiles it asks ahead change.
     pub group: Arc<AtomicUsize>,
+    /// On the virtual clock, the cores every simulated client shares
+    /// where they model one host ([`crate::costs::VirtualClock::cores`]).
+    pub cores: Option<Arc<tokio::sync::Semaphore>>,
 }
 
 async fn run_job(
@@ -124,6 +130,17 @@ async fn run_job(
     }
 }
 
+/// How a render thread's tracing time is known.
+#[derive(Clone, Copy, Debug)]
+pub(crate) enum Meter {
+    /// Measured: an OS thread, on the wall clock.
+    Wall,
+    /// Charged from the work each poll of a tile did: a task on the
+    /// virtual clock, which then waits that long before it does anything
+    /// else, as a thread busy tracing would.
+    Model(CostModel),
+}
+
 /// A tile's future that adds the time spent polling it (tracing) to a
 /// counter of its thread, so that the thread can tell its waits from its
 /// work.
@@ -132,6 +149,7 @@ struct Timed<F> {
     frame: u64,
     inner: std::pin::Pin<Box<F>>,
     traced: Rc<Cell<std::time::Duration>>,
+    meter: Meter,
 }
 
 impl<F: std::future::Future> std::future::Future for Timed<F> {
@@ -141,29 +159,89 @@ impl<F: std::future::Future> std::future::Future for Timed<F> {
         mut self: std::pin::Pin<&mut Self>,
         cx: &mut std::task::Context<'_>,
     ) -> std::task::Poll<F::Output> {
-        let start = Instant::now();
-        let r = self.inner.as_mut().poll(cx);
-        self.traced.set(self.traced.get() + start.elapsed());
+        let (r, spent) = match self.meter {
+            Meter::Wall => {
+                let start = std::time::Instant::now();
+                let r = self.inner.as_mut().poll(cx);
+                (r, start.elapsed())
+            }
+            Meter::Model(cost) => {
+                let before = dray_trace::work::done();
+                let r = self.inner.as_mut().poll(cx);
+                (r, cost.trace(dray_trace::work::done().since(before)))
+            }
+        };
+        self.traced.set(self.traced.get() + spent);
         r
     }
 }
 
+/// Spends `work` of a thread's time on the virtual clock, on one of the
+/// host's `cores` where they are shared. Tokio's timers fire on whole
+/// milliseconds: what a sleep overshoots is kept in `overslept` and taken
+/// off the next charges, so that a thread's busy time is the sum of its
+/// charges, not each rounded up.
+pub(crate) async fn charge(
+    work: std::time::Duration,
+    overslept: &mut std::time::Duration,
+    cores: Option<&tokio::sync::Semaphore>,
+) {
+    let due = work.saturating_sub(*overslept);
+    *overslept = overslept.saturating_sub(work);
+    if due.is_zero() {
+        return;
+    }
+    let _core = match cores {
+        Some(c) => c.acquire().await.ok(),
+        None => None,
+    };
+    let until = Instant::now() + due;
+    tokio::time::sleep_until(until).await;
+    *overslept += Instant::now().saturating_duration_since(until);
+}
+
 /// The body of render thread `index`: renders the tiles it receives until
 /// its channel closes or the client stops.
+/// Returns the CPU time the thread used.
 pub(crate) fn render_thread(
     ctx: WorkerCtx,
     index: usize,
-    mut tiles: mpsc::UnboundedReceiver<TileJob>,
-) {
+    tiles: mpsc::UnboundedReceiver<TileJob>,
+) -> std::time::Duration {
     dray_runtime::process::lower_this_thread_priority(
         dray_runtime::process::RENDER_THREAD_NICENESS,
     );
+    futures::executor::block_on(render_loop(ctx, index, tiles, Meter::Wall));
+    thread_cpu_time()
+}
+
+/// CPU time of the calling thread.
+fn thread_cpu_time() -> std::time::Duration {
+    let mut t = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: `t` is a valid timespec for the call to fill.
+    if unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut t) } != 0 {
+        return std::time::Duration::ZERO;
+    }
+    std::time::Duration::new(t.tv_sec as u64, t.tv_nsec as u32)
+}
+
+/// A render thread's loop, on its own thread ([`render_thread`]) or as a
+/// task on the virtual clock (with [`Meter::Model`]).
+pub(crate) async fn render_loop(
+    ctx: WorkerCtx,
+    index: usize,
+    mut tiles: mpsc::UnboundedReceiver<TileJob>,
+    meter: Meter,
+) {
     let limit = || match ctx.mode {
         MissMode::Block => 1,
         MissMode::Suspend => ctx.tiles_in_progress.load(Ordering::Relaxed).max(1),
     };
     let ctx = &ctx;
-    futures::executor::block_on(async move {
+    {
         let mut running = FuturesUnordered::new();
         let mut open = true;
         // Stall: waiting with tiles in progress (all of them blocked on
@@ -171,6 +249,8 @@ pub(crate) fn render_thread(
         let mut stalled = std::time::Duration::ZERO;
         let mut charged = std::time::Duration::ZERO;
         let traced = Rc::new(Cell::new(std::time::Duration::ZERO));
+        // On the virtual clock: time slept past a charge's end.
+        let mut overslept = std::time::Duration::ZERO;
         let (mut traced_total, mut idle) = (std::time::Duration::ZERO, std::time::Duration::ZERO);
         // Idleness charged to tiles so far; `None` until the first tile
         // arrives (waiting for it is not running out of work).
@@ -180,6 +260,7 @@ pub(crate) fn render_thread(
             frame: job.frame,
             inner: Box::pin(run_job(ctx, index, job, chooser.clone())),
             traced: traced.clone(),
+            meter,
         };
         // Finished tiles not yet sent to the actor.
         let mut unsent: Vec<TileResult> = Vec::new();
@@ -229,12 +310,21 @@ pub(crate) fn render_thread(
             };
             let spent = traced.take();
             traced_total += spent;
+            // Polling the tiles traces their ready packets; what is left of
+            // the wait is time with nothing runnable. On the virtual clock
+            // polls take no time: the thread is charged for them now.
+            let waited = match meter {
+                Meter::Wall => waited.elapsed().saturating_sub(spent),
+                Meter::Model(_) => {
+                    let w = waited.elapsed();
+                    charge(spent, &mut overslept, ctx.cores.as_deref()).await;
+                    w
+                }
+            };
             if busy {
-                // Polling the tiles traces their ready packets; what is
-                // left of the wait is time with nothing runnable.
-                stalled += waited.elapsed().saturating_sub(spent);
+                stalled += waited;
             } else {
-                idle += waited.elapsed();
+                idle += waited;
             }
             match event {
                 Event::Done(mut r) => {
@@ -269,5 +359,5 @@ pub(crate) fn render_thread(
             idle_s = idle.as_secs_f64(),
             "render thread done"
         );
-    });
+    }
 }
