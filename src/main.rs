@@ -336,8 +336,13 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 let mut cal = dray_actors::costs::calibrate(&cfg, kernel, threads)
                     .map_err(|e| anyhow::anyhow!("calibrating the cost model: {e}"))?;
                 if host_cores.is_some() {
-                    dray_actors::costs::measure_host_overhead(&cfg, clients, kernel, &mut cal.model)
-                        .map_err(|e| anyhow::anyhow!("calibrating the cost model: {e}"))?;
+                    dray_actors::costs::measure_host_overhead(
+                        &cfg,
+                        clients,
+                        kernel,
+                        &mut cal.model,
+                    )
+                    .map_err(|e| anyhow::anyhow!("calibrating the cost model: {e}"))?;
                 }
                 let run = dray_actors::costs::VirtualRun {
                     cost: cal.model,

@@ -111,7 +111,11 @@ impl CostModel {
 
     /// What decoding a voxel of `raw_bytes` takes.
     pub fn decode(&self, raw_bytes: u64) -> Duration {
-        Duration::from_nanos((self.ns_per_decoded_byte * raw_bytes as f64).max(0.0).round() as u64)
+        Duration::from_nanos(
+            (self.ns_per_decoded_byte * raw_bytes as f64)
+                .max(0.0)
+                .round() as u64,
+        )
     }
 
     /// Checks that every cost is finite and not negative; `place` names
@@ -267,7 +271,10 @@ pub fn calibrate(cfg: &Config, isa: Isa, threads: usize) -> Result<Calibration, 
     std::thread::scope(|scope| -> Result<(), String> {
         let running: Vec<_> = (0..threads).map(|_| scope.spawn(trace_all)).collect();
         for t in running {
-            rows.extend(t.join().map_err(|_| "a calibration thread panicked".to_string())??);
+            rows.extend(
+                t.join()
+                    .map_err(|_| "a calibration thread panicked".to_string())??,
+            );
         }
         Ok(())
     })?;
@@ -350,7 +357,8 @@ pub fn measure_host_overhead(
     };
     let (short, few) = overhead(HOST_FRAMES[0])?;
     let (long, many) = overhead(HOST_FRAMES[1])?;
-    model.ns_per_pixel_host = ((long - short).max(0.0) * 1e9) / many.saturating_sub(few).max(1) as f64;
+    model.ns_per_pixel_host =
+        ((long - short).max(0.0) * 1e9) / many.saturating_sub(few).max(1) as f64;
     Ok(())
 }
 
@@ -447,7 +455,11 @@ fn fit_non_negative<const K: usize>(rows: &[([f64; K], f64)]) -> ([f64; K], f64)
         ss_res += (y - fit) * (y - fit);
         ss_tot += (y - mean) * (y - mean);
     }
-    let r2 = if ss_tot > 0.0 { 1.0 - ss_res / ss_tot } else { 1.0 };
+    let r2 = if ss_tot > 0.0 {
+        1.0 - ss_res / ss_tot
+    } else {
+        1.0
+    };
     (coef, r2)
 }
 

@@ -26,6 +26,12 @@
 //! the display when a frame is complete ([`Message::FrameDone`]) and the
 //! prefetcher who rendered which tile ([`Message::TileOwners`]).
 //!
+//! Every actor's loop takes its `select!` branches in order (`biased`),
+//! not at random, and blocking work on the virtual clock runs on the
+//! virtual thread ([`spawn_blocking`]): so a run on the virtual clock
+//! ([`nodes::sim_virtual`], [`costs`]) repeats exactly. Each branch
+//! drains quickly, so none starves the others.
+//!
 //! [`Message::CameraUpdate`]: dray_protocol::Message::CameraUpdate
 //! [`Message::FrameStart`]: dray_protocol::Message::FrameStart
 //! [`Message::FrameAssigned`]: dray_protocol::Message::FrameAssigned
@@ -94,6 +100,38 @@ pub enum ActorError {
     /// The bus was dropped before the actor was told to stop.
     #[error("{0}: the bus closed")]
     BusClosed(String),
+}
+
+thread_local! {
+    /// Set on the thread that runs a virtual run ([`nodes::sim_virtual`]).
+    static ON_VIRTUAL_CLOCK: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
+}
+
+/// Marks the calling thread as running a virtual run until the guard
+/// drops.
+pub(crate) fn on_virtual_clock() -> impl Drop {
+    struct Guard;
+    impl Drop for Guard {
+        fn drop(&mut self) {
+            ON_VIRTUAL_CLOCK.with(|v| v.set(false));
+        }
+    }
+    ON_VIRTUAL_CLOCK.with(|v| v.set(true));
+    Guard
+}
+
+/// Runs blocking `f` on tokio's blocking pool; on the virtual clock, right
+/// here, so that when it finishes does not depend on another thread and a
+/// virtual run repeats exactly (the clock stands still either way).
+pub(crate) fn spawn_blocking<T: Send + 'static>(
+    f: impl FnOnce() -> T + Send + 'static,
+) -> tokio::task::JoinHandle<T> {
+    if ON_VIRTUAL_CLOCK.with(std::cell::Cell::get) {
+        let done = f();
+        tokio::spawn(async move { done })
+    } else {
+        tokio::task::spawn_blocking(f)
+    }
 }
 
 /// Sleeps until `deadline`, or forever without one (a `select!` branch

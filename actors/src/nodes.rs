@@ -588,6 +588,7 @@ pub fn sim_virtual(
         virtual_clock: Some(run),
         ..opts.clone()
     };
+    let _virtual = crate::on_virtual_clock();
     tokio::task::LocalSet::new().block_on(&rt, sim(cfg, &opts))
 }
 

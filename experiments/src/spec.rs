@@ -40,7 +40,12 @@ pub enum Engine {
 }
 
 /// Every engine, in the order the documentation lists them.
-pub const ENGINES: [Engine; 4] = [Engine::Sim, Engine::Cluster, Engine::Render, Engine::Virtual];
+pub const ENGINES: [Engine; 4] = [
+    Engine::Sim,
+    Engine::Cluster,
+    Engine::Render,
+    Engine::Virtual,
+];
 
 /// The key that sweeps the engine, like a config key.
 pub const ENGINE: &str = "engine";

@@ -65,9 +65,15 @@ fn cost_models(dir: &Path) -> String {
     for (v, names) in &models {
         let m = &v["model"];
         let c = &v["calibration"];
-        let num = |x: &serde_json::Value| x.as_f64().map_or("–".into(), |f| format!("{}", round3(f)));
+        let num =
+            |x: &serde_json::Value| x.as_f64().map_or("–".into(), |f| format!("{}", round3(f)));
         let runs = if names.len() > 3 {
-            format!("{} … {} ({})", names[0], names[names.len() - 1], names.len())
+            format!(
+                "{} … {} ({})",
+                names[0],
+                names[names.len() - 1],
+                names.len()
+            )
         } else {
             names.join(", ")
         };
@@ -83,7 +89,9 @@ fn cost_models(dir: &Path) -> String {
             num(&m["ns_per_voxel_visit"]),
             num(&m["ns_per_decoded_byte"]),
             num(&m["ns_per_pixel_host"]),
-            v["host_cores"].as_u64().map_or("–".into(), |n| n.to_string()),
+            v["host_cores"]
+                .as_u64()
+                .map_or("–".into(), |n| n.to_string()),
             num(&v["speed"]),
         );
     }

@@ -12,6 +12,7 @@
 //! everything is in use the cache goes over budget until some of it is
 //! released, and [`VoxelCache::peak_bytes`] records how far.
 
+use super::shared_voxels::DecodedVoxels;
 use dray_trace::accel::PreparedVoxel;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
@@ -34,6 +35,21 @@ pub struct VoxelCache {
     evicted: AtomicU64,
     /// Serializes inserts and evictions.
     evict: Mutex<()>,
+    /// Voxels shared with other clients' caches (the virtual engine).
+    shared: Option<Arc<DecodedVoxels>>,
+}
+
+impl Drop for VoxelCache {
+    /// Shared voxels this cache held are no longer held by it.
+    fn drop(&mut self) {
+        if let Some(shared) = &self.shared {
+            for (i, slot) in self.slots.iter().enumerate() {
+                if lock(&slot.voxel).is_some() {
+                    shared.cached(i as u32, false);
+                }
+            }
+        }
+    }
 }
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -61,6 +77,24 @@ impl VoxelCache {
             peak: AtomicU64::new(0),
             evicted: AtomicU64::new(0),
             evict: Mutex::new(()),
+            shared: None,
+        }
+    }
+
+    /// A cache whose voxels other clients' caches may hold too
+    /// ([`DecodedVoxels`]).
+    pub fn sharing(voxels: usize, budget_bytes: u64, shared: Arc<DecodedVoxels>) -> VoxelCache {
+        let mut c = VoxelCache::new(voxels, budget_bytes);
+        c.shared = Some(shared);
+        c
+    }
+
+    /// Whether nothing but this cache (or other caches, where voxels are
+    /// shared) holds `v`: then it may be freed.
+    fn unused(&self, v: &Arc<PreparedVoxel>) -> bool {
+        match &self.shared {
+            Some(s) => s.only_cached(v),
+            None => Arc::strong_count(v) == 1,
         }
     }
 
@@ -111,6 +145,9 @@ impl VoxelCache {
             }
             *s = Some(voxel.clone());
         }
+        if let Some(shared) = &self.shared {
+            shared.cached(id, true);
+        }
         self.count.fetch_add(1, Ordering::Relaxed);
         self.touch(slot);
         let now = self
@@ -137,7 +174,8 @@ impl VoxelCache {
             .filter_map(|(i, s)| {
                 let v = lock(&s.voxel);
                 let v = v.as_ref()?;
-                (Arc::strong_count(v) == 1).then(|| (s.stamp.load(Ordering::Relaxed), i as u32))
+                self.unused(v)
+                    .then(|| (s.stamp.load(Ordering::Relaxed), i as u32))
             })
             .collect();
         candidates.sort_unstable();
@@ -151,8 +189,11 @@ impl VoxelCache {
             // Someone may have taken it since the scan: check again under
             // the slot's lock (a lookup clones under the same lock).
             if let Some(v) = s.as_ref() {
-                if Arc::strong_count(v) == 1 {
+                if self.unused(v) {
                     let bytes = v.bytes as u64;
+                    if let Some(shared) = &self.shared {
+                        shared.cached(i, false);
+                    }
                     *s = None;
                     self.resident.fetch_sub(bytes, Ordering::Relaxed);
                     self.count.fetch_sub(1, Ordering::Relaxed);

@@ -35,6 +35,7 @@ mod worker;
 
 pub use loader::{FETCH_TIMEOUT, MAX_TRIES, RETRY_DELAY};
 
+use crate::costs::VirtualClock;
 use crate::names::StoreRoutes;
 use crate::ActorError;
 use cache::VoxelCache;
@@ -50,7 +51,6 @@ use std::sync::Arc;
 use tokio::sync::mpsc;
 use tokio::time::{timeout, timeout_at, Duration, Instant};
 use tracing::{debug, info, warn};
-use crate::costs::VirtualClock;
 use worker::{render_loop, render_thread, Meter, TileJob, TileResult, WorkerCtx};
 
 /// How long to wait for a store's manifest before asking another store.
@@ -395,7 +395,10 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
 
     let me = mb.handle();
     let mut links = LinkMeter::new(me.bus().clone());
-    let cache = Arc::new(VoxelCache::new(manifest.voxels.len(), opts.cache_bytes));
+    let cache = Arc::new(match &opts.virtual_clock {
+        Some(v) => VoxelCache::sharing(manifest.voxels.len(), opts.cache_bytes, v.voxels.clone()),
+        None => VoxelCache::new(manifest.voxels.len(), opts.cache_bytes),
+    });
     let (req_tx, mut req_rx) = mpsc::unbounded_channel();
     let (decoded_tx, mut decoded_rx) = mpsc::unbounded_channel();
     let (done_tx, mut done_rx) = mpsc::unbounded_channel::<Vec<TileResult>>();
@@ -471,6 +474,7 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
             outlets.carry(o);
         }
         tokio::select! {
+            biased;
             d = mb.recv() => match d {
                 None => break,
                 Some(Delivery::Message { from, msg }) => match msg {

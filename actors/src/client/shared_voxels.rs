@@ -3,8 +3,9 @@
 //! decoded copies of the same voxel would make its memory grow with the
 //! clients instead of the model. A voxel is decoded once while any
 //! client's cache (or packet) holds it; each client still accounts it in
-//! its own cache, budget and LRU order as if it had its own copy, and is
-//! still charged the decode's time by the cost model.
+//! its own cache, budget and LRU order as if it had its own copy, frees
+//! it when only caches hold it (as it frees its own copy when only it
+//! does), and is still charged the decode's time by the cost model.
 
 use dray_scene::db::manifest::VoxelEntry;
 use dray_trace::accel::PreparedVoxel;
@@ -14,8 +15,16 @@ use std::sync::{Arc, Mutex, Weak};
 /// Voxels decoded by some client and still held by one, by id.
 #[derive(Default)]
 pub struct DecodedVoxels {
-    live: Mutex<HashMap<u32, Weak<PreparedVoxel>>>,
+    live: Mutex<HashMap<u32, Shared>>,
     decoded: std::sync::atomic::AtomicU64,
+}
+
+#[derive(Default)]
+struct Shared {
+    voxel: Weak<PreparedVoxel>,
+    /// Clients' caches holding it: a cache may free a voxel that only
+    /// caches hold, as it frees one only it holds where nothing is shared.
+    caches: usize,
 }
 
 impl DecodedVoxels {
@@ -35,7 +44,7 @@ impl DecodedVoxels {
         let same_blob = blob.len() as u64 == entry.compressed_bytes
             && dray_scene::voxel::stored_checksum(blob) == Some(entry.checksum);
         if same_blob {
-            if let Some(v) = self.lock().get(&id).and_then(Weak::upgrade) {
+            if let Some(v) = self.lock().get(&id).and_then(|s| s.voxel.upgrade()) {
                 return Ok(v);
             }
         }
@@ -46,10 +55,28 @@ impl DecodedVoxels {
         // Forget voxels no client holds any more, now and then: the map
         // stays as large as what is held.
         if live.len() >= 1024 && live.len().is_power_of_two() {
-            live.retain(|_, w| w.strong_count() > 0);
+            live.retain(|_, s| s.voxel.strong_count() > 0 || s.caches > 0);
         }
-        live.insert(id, Arc::downgrade(&v));
+        live.entry(id).or_default().voxel = Arc::downgrade(&v);
         Ok(v)
+    }
+
+    /// A client's cache took voxel `id` in (`true`) or freed it.
+    pub(crate) fn cached(&self, id: u32, taken: bool) {
+        let mut live = self.lock();
+        let s = live.entry(id).or_default();
+        if taken {
+            s.caches += 1;
+        } else {
+            s.caches = s.caches.saturating_sub(1);
+        }
+    }
+
+    /// Whether `v` is held by nothing but clients' caches (`mine` of its
+    /// holders being the asking cache's own).
+    pub(crate) fn only_cached(&self, v: &Arc<PreparedVoxel>) -> bool {
+        let caches = self.lock().get(&v.id).map_or(1, |s| s.caches.max(1));
+        Arc::strong_count(v) <= caches
     }
 
     /// Voxels decoded so far (not those shared).
@@ -57,7 +84,7 @@ impl DecodedVoxels {
         self.decoded.load(std::sync::atomic::Ordering::Relaxed)
     }
 
-    fn lock(&self) -> std::sync::MutexGuard<'_, HashMap<u32, Weak<PreparedVoxel>>> {
+    fn lock(&self) -> std::sync::MutexGuard<'_, HashMap<u32, Shared>> {
         self.live.lock().unwrap_or_else(|e| e.into_inner())
     }
 }

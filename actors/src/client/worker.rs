@@ -7,8 +7,8 @@
 //! renders one tile at a time and stalls on each miss.
 
 use super::loader::{Fetched, Shared, TileLoader};
-use dray_protocol::TileRect;
 use crate::costs::CostModel;
+use dray_protocol::TileRect;
 use dray_trace::accel::TopLevel;
 use dray_trace::camera::Camera;
 use dray_trace::render::{PacketChooser, Packets, RenderSettings};

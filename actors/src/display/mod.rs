@@ -200,7 +200,7 @@ impl Output {
         let Some(dir) = self.frames_dir.clone() else {
             return Ok(());
         };
-        self.pending.push_back(tokio::task::spawn_blocking(move || {
+        self.pending.push_back(crate::spawn_blocking(move || {
             write_frame_files(&dir, width, height, &image)
         }));
         while self.pending.len() > MAX_PENDING_WRITES {
@@ -365,6 +365,7 @@ pub async fn run_display_with_viewer(
         tokio::pin!(wait);
         loop {
             tokio::select! {
+                biased;
                 _ = &mut wait => break,
                 _ = &mut stop => d.interrupted(&mut out),
                 delivery = mb.recv() => match delivery {
@@ -391,6 +392,7 @@ pub async fn run_display_with_viewer(
         }
         let deadline = d.deadline();
         tokio::select! {
+            biased;
             delivery = mb.recv() => {
                 let now = Instant::now();
                 match delivery {

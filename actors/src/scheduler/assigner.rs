@@ -177,6 +177,7 @@ pub async fn run_assigner(mut mb: Mailbox, opts: AssignerOptions) -> Result<(), 
     let mut retry_at: Option<tokio::time::Instant> = None;
     loop {
         tokio::select! {
+            biased;
             d = mb.recv() => match d {
                 None => return Ok(()),
                 Some(Delivery::Message { from, msg }) => match msg {

@@ -245,6 +245,7 @@ pub async fn run_prefetcher(
     let mut out = Vec::new();
     loop {
         tokio::select! {
+            biased;
             d = mb.recv() => match d {
                 None => return Ok(p.summary().clone()),
                 Some(Delivery::Message { from, msg }) => match msg {
@@ -286,7 +287,7 @@ async fn carry_out(p: &mut Prefetcher, mb: &Mailbox, out: &mut Vec<Out>) {
                     let frame = plan.frame;
                     // Thousands of rays through the BSP: on the blocking pool, not on
                     // the scheduler node's only thread, which hands out the tiles.
-                    match tokio::task::spawn_blocking(move || plan.run()).await {
+                    match crate::spawn_blocking(move || plan.run()).await {
                         Ok(hints) => p.planned(frame, hints, out),
                         Err(e) => warn!(frame, "planning the prefetch failed: {e}"),
                     }

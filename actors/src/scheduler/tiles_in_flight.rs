@@ -921,6 +921,7 @@ pub async fn run_scheduler(
     let mut out = Vec::new();
     loop {
         tokio::select! {
+            biased;
             d = mb.recv() => match d {
                 None => {
                     debug!("scheduler mailbox closed");

@@ -152,7 +152,7 @@ pub async fn run_store(mut mb: Mailbox, opts: StoreOptions) -> Result<StoreSumma
     };
     let path = opts.database.clone();
     let shard = opts.shard;
-    let (db, manifest) = tokio::task::spawn_blocking(move || {
+    let (db, manifest) = crate::spawn_blocking(move || {
         let db = open_database(&path, shard)?;
         let manifest_path = db.dir().join(MANIFEST_FILE);
         let bytes = std::fs::read(&manifest_path)
@@ -179,6 +179,7 @@ pub async fn run_store(mut mb: Mailbox, opts: StoreOptions) -> Result<StoreSumma
     loop {
         while others.try_join_next().is_some() {}
         tokio::select! {
+            biased;
             d = mb.recv() => match d {
                 None => break,
                 Some(Delivery::Message { from, msg }) => match msg {
@@ -259,7 +260,7 @@ async fn read_and_send(
         .get(id as usize)
         .map_or(0, |v| v.compressed_bytes);
     let done = disk.map(|d| d.book(bytes));
-    let blob = tokio::task::spawn_blocking(move || db.read_blob(id))
+    let blob = crate::spawn_blocking(move || db.read_blob(id))
         .await
         .map_err(|e| format!("read task failed: {e}"))
         .and_then(|r| r.map_err(|e| e.to_string()));
