@@ -11,8 +11,8 @@
 //! views and kernel: it traces tiles of the run's cameras with every voxel
 //! resident, one thread, timing each, fits the tile costs by least squares,
 //! and times the decoding of a sample of the database's voxels.
-//! `clients.speed` scales the whole model (2 is a client twice as fast as
-//! this machine's core). Calibration traces on as many threads at once as
+//! `clients.speed` scales the tracing costs (2 is a client twice as fast
+//! as this machine's core), `clients.decode_speed` the decoding cost. Calibration traces on as many threads at once as
 //! a client has (or as the host has cores, where the clients share one),
 //! since cores that share a machine trace slower than one alone.
 
@@ -83,14 +83,15 @@ pub struct CostModel {
 }
 
 impl CostModel {
-    /// Every cost divided by `speed` (a client `speed` times as fast).
-    pub fn scaled(self, speed: f64) -> CostModel {
+    /// For a client that traces `speed` times and decodes `decode_speed`
+    /// times as fast (the host's other actors go at `speed`).
+    pub fn scaled(self, speed: f64, decode_speed: f64) -> CostModel {
         CostModel {
             ns_per_tile: self.ns_per_tile / speed,
             ns_per_primary_ray: self.ns_per_primary_ray / speed,
             ns_per_secondary_ray: self.ns_per_secondary_ray / speed,
             ns_per_voxel_visit: self.ns_per_voxel_visit / speed,
-            ns_per_decoded_byte: self.ns_per_decoded_byte / speed,
+            ns_per_decoded_byte: self.ns_per_decoded_byte / decode_speed,
             ns_per_pixel_host: self.ns_per_pixel_host / speed,
         }
     }
@@ -314,15 +315,12 @@ pub fn calibrate(cfg: &Config, isa: Isa, threads: usize) -> Result<Calibration, 
     })
 }
 
-/// Frames of the two real runs that measure the host's overhead: their
-/// difference leaves out what starting a run costs.
-const HOST_FRAMES: [usize; 2] = [5, 25];
-
 /// Measures [`CostModel::ns_per_pixel_host`]: runs the real `sim` of `cfg`
-/// with `clients` clients for its first 5 and first 25 frames and takes the
-/// process's CPU time that neither the render threads nor the decodes (as
-/// `model` prices them) account for, per pixel of the difference. Sets it
-/// in `model`.
+/// with `clients` clients, once for its first frame and once whole, and
+/// takes the process's CPU time that neither the render threads nor the
+/// decodes (as `model` prices them) account for, per pixel of the
+/// difference (which leaves out what starting a run costs). Sets it in
+/// `model`.
 pub fn measure_host_overhead(
     cfg: &Config,
     clients: u32,
@@ -334,12 +332,12 @@ pub fn measure_host_overhead(
         .build()
         .map_err(|e| format!("cannot start a runtime: {e}"))?;
     // (CPU seconds not accounted for, pixels shown) of a run.
-    let overhead = |frames: usize| -> Result<(f64, u64), String> {
+    let overhead = |frames: Option<usize>| -> Result<(f64, u64), String> {
         let opts = crate::nodes::RunOptions {
             clients: Some(clients),
             isa: Some(isa),
             keep_frame_metrics: false,
-            max_frames: Some(frames),
+            max_frames: frames,
             ..crate::nodes::RunOptions::default()
         };
         let before = process_cpu();
@@ -355,8 +353,8 @@ pub fn measure_host_overhead(
             * u64::from(cfg.render.height);
         Ok((cpu - render - decode, pixels))
     };
-    let (short, few) = overhead(HOST_FRAMES[0])?;
-    let (long, many) = overhead(HOST_FRAMES[1])?;
+    let (short, few) = overhead(Some(1))?;
+    let (long, many) = overhead(None)?;
     model.ns_per_pixel_host =
         ((long - short).max(0.0) * 1e9) / many.saturating_sub(few).max(1) as f64;
     Ok(())
@@ -477,11 +475,12 @@ fn solve(mut a: Vec<Vec<f64>>) -> Option<Vec<f64>> {
             return None;
         }
         a.swap(col, pivot);
-        for row in 0..n {
+        let pivot_row = a[col].clone();
+        for (row, r) in a.iter_mut().enumerate() {
             if row != col {
-                let f = a[row][col] / a[col][col];
-                for k in col..=n {
-                    a[row][k] -= f * a[col][k];
+                let f = r[col] / pivot_row[col];
+                for (x, p) in r[col..].iter_mut().zip(&pivot_row[col..]) {
+                    *x -= f * p;
                 }
             }
         }
@@ -543,8 +542,10 @@ mod tests {
             voxel_visits: 100,
         };
         assert_eq!(m.trace(w), Duration::from_nanos(1000 + 1000 + 500 + 1000));
-        assert_eq!(m.scaled(2.0).trace(w), Duration::from_nanos(1750));
+        assert_eq!(m.scaled(2.0, 1.0).trace(w), Duration::from_nanos(1750));
         assert_eq!(m.decode(1000), Duration::from_micros(2));
+        assert_eq!(m.scaled(2.0, 1.0).decode(1000), Duration::from_micros(2));
+        assert_eq!(m.scaled(1.0, 4.0).decode(1000), Duration::from_nanos(500));
         assert!(m.validate("x").is_ok());
         let bad = CostModel {
             ns_per_voxel_visit: -1.0,

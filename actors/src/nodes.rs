@@ -288,7 +288,7 @@ fn client_options(cfg: &Config, opts: &RunOptions) -> Result<ClientOptions, Clus
         scheduler: names::scheduler(),
         display: names::display(),
         virtual_clock: opts.virtual_clock.map(|v| crate::costs::VirtualClock {
-            cost: v.cost.scaled(c.speed),
+            cost: v.cost.scaled(c.speed, c.decode_speed),
             voxels: crate::client::shared_voxels::DecodedVoxels::new(),
             cores: v
                 .host_cores

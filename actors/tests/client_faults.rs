@@ -94,6 +94,7 @@ fn options(mode: MissMode) -> ClientOptions {
         scheduler: names::scheduler(),
         display: names::display(),
         corrupt_voxel: Default::default(),
+        virtual_clock: None,
     }
 }
 

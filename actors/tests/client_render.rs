@@ -42,6 +42,7 @@ fn options(cache_bytes: u64, mode: MissMode, stores: usize) -> ClientOptions {
         scheduler: names::scheduler(),
         display: names::display(),
         corrupt_voxel: Default::default(),
+        virtual_clock: None,
     }
 }
 

@@ -53,9 +53,9 @@ impl CostModels {
         let clients = cfg.clients.count;
         let threads = dray_actors::costs::calibration_threads(cfg, clients, self.spec.host_cores);
         let key = format!(
-            "{}|{}|{}|{threads}|{}",
+            "{}|{:?}|{}|{threads}|{}",
             cfg.scene.database.display(),
-            format!("{:?}", cfg.render),
+            cfg.render,
             isa.name(),
             self.spec.host_cores.map_or(0, |_| clients),
         );
@@ -81,6 +81,7 @@ impl CostModels {
             "calibration": calibration,
             "host_cores": self.spec.host_cores,
             "speed": cfg.clients.speed,
+            "decode_speed": cfg.clients.decode_speed,
         });
         let file = config_file.with_file_name(CALIBRATION_JSON);
         std::fs::write(&file, format!("{record:#}\n"))

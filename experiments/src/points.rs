@@ -35,12 +35,32 @@ impl Point {
     }
 }
 
-/// A value as a CSV cell: a string bare, anything else as TOML writes it.
+/// A value as a CSV cell: a labelled value's label, a string bare,
+/// anything else as TOML writes it.
 pub fn cell(v: &toml::Value) -> String {
-    match v {
-        toml::Value::String(s) => s.clone(),
-        other => other.to_string(),
+    match labelled(v) {
+        Some((label, _)) => cell(label),
+        None => match v {
+            toml::Value::String(s) => s.clone(),
+            other => other.to_string(),
+        },
     }
+}
+
+/// A swept value written `{ label = L, value = V }`: `L` names it in the
+/// CSV files, the summary and the plots, `V` is what the config gets
+/// (for values too long to read, such as a list of stores).
+pub fn labelled(v: &toml::Value) -> Option<(&toml::Value, &toml::Value)> {
+    let t = v.as_table()?;
+    match (t.len(), t.get("label"), t.get("value")) {
+        (2, Some(label), Some(value)) => Some((label, value)),
+        _ => None,
+    }
+}
+
+/// What the config gets of a swept value: the value of a labelled one.
+pub fn config_value(v: &toml::Value) -> &toml::Value {
+    labelled(v).map_or(v, |(_, value)| value)
 }
 
 /// Every combination of the lists, the first key varying slowest; one
@@ -92,5 +112,22 @@ mod tests {
         assert_eq!(p[5].run_dir_name(2), "p005-r2");
         assert_eq!(points(&[]).len(), 1);
         assert_eq!(points(&[])[0].label(), "(no sweep)");
+    }
+
+    #[test]
+    fn a_labelled_value_shows_its_label_and_gives_the_config_its_value() {
+        let v: Value = toml::from_str::<toml::Table>(
+            r#"x = { label = 2, value = [{ address = "a" }, { address = "b" }] }"#,
+        )
+        .unwrap()["x"]
+            .clone();
+        assert_eq!(cell(&v), "2");
+        assert_eq!(config_value(&v).as_array().map(Vec::len), Some(2));
+        assert_eq!(crate::spec::number(&v), Some(2.0));
+        // A table with other keys is a plain value.
+        let plain: Value =
+            toml::from_str::<toml::Table>(r#"x = { label = 2, other = 1 }"#).unwrap()["x"].clone();
+        assert!(labelled(&plain).is_none());
+        assert_eq!(config_value(&plain), &plain);
     }
 }

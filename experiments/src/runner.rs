@@ -359,7 +359,7 @@ impl Plan<'_> {
                     "render.camera_path",
                     path_value(&model::walk_file(self.dir, Some(n))),
                 ),
-                _ => Override::from_file(Origin::Sweep, k, v, exp_dir),
+                _ => Override::from_file(Origin::Sweep, k, crate::points::config_value(v), exp_dir),
             },
         ));
         let (cfg, table) = self.base.build(&self.exp.file, &o)?;

@@ -611,6 +611,9 @@ pub(crate) fn walk_frames(v: &toml::Value) -> Option<u32> {
 
 /// A TOML number as f64.
 pub(crate) fn number(v: &toml::Value) -> Option<f64> {
+    if let Some((label, _)) = crate::points::labelled(v) {
+        return number(label);
+    }
     match v {
         toml::Value::Integer(i) => Some(*i as f64),
         toml::Value::Float(f) => Some(*f),

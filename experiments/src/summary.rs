@@ -58,9 +58,9 @@ fn cost_models(dir: &Path) -> String {
          Nanoseconds per unit of work of a client core, measured on this machine \
          (`calibrated`: traced tiles of the run's views on `threads` threads at once, \
          fitted by least squares with fit R²; `fixed`: given by the file), \
-         before `clients.speed` divides them. Each run's: `runs/*/calibration.json`.\n\n\
-         | runs | source | threads | tiles | R² | tile | primary ray | secondary ray | voxel visit | decoded byte | host pixel | host cores | speed |\n\
-         |---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
+         before `clients.speed` (tracing) and `clients.decode_speed` divide them. Each run's: `runs/*/calibration.json`.\n\n\
+         | runs | source | threads | tiles | R² | tile | primary ray | secondary ray | voxel visit | decoded byte | host pixel | host cores | speed | decode speed |\n\
+         |---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
     );
     for (v, names) in &models {
         let m = &v["model"];
@@ -78,7 +78,7 @@ fn cost_models(dir: &Path) -> String {
             names.join(", ")
         };
         s += &format!(
-            "| {runs} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
+            "| {runs} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
             if c.is_null() { "fixed" } else { "calibrated" },
             num(&c["threads"]),
             num(&c["tiles"]),
@@ -93,6 +93,7 @@ fn cost_models(dir: &Path) -> String {
                 .as_u64()
                 .map_or("–".into(), |n| n.to_string()),
             num(&v["speed"]),
+            num(&v["decode_speed"]),
         );
     }
     s + "\n"

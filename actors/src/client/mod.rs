@@ -188,9 +188,8 @@ struct Outlets {
     decoded: mpsc::UnboundedSender<Decoded>,
     /// Each render thread's queue of tiles.
     threads: Vec<mpsc::UnboundedSender<TileJob>>,
-    virtual_clock: Option<VirtualClock>,
     /// On the virtual clock: the client's work beside its render threads.
-    background: Option<mpsc::UnboundedSender<Background>>,
+    virtual_lane: Option<VirtualLane>,
     group: Arc<AtomicUsize>,
     in_progress: Arc<AtomicUsize>,
 }
@@ -203,6 +202,12 @@ struct Outlets {
 enum Background {
     Decode(Duration, Decoded),
     Host(Duration),
+}
+
+/// The virtual clock's model and the lane that charges what it prices.
+struct VirtualLane {
+    clock: VirtualClock,
+    work: mpsc::UnboundedSender<Background>,
 }
 
 async fn background_lane(
@@ -243,16 +248,18 @@ impl Outlets {
                 entry,
                 blob,
             } => {
-                if let Some((v, lane)) = self.virtual_clock.as_ref().zip(self.background.as_ref()) {
+                if let Some(lane) = &self.virtual_lane {
                     // Decoded here, shared, and delivered when the cost
                     // model says a decoder would be done.
+                    let v = &lane.clock;
                     let decoded = Decoded {
                         id,
                         store,
                         bytes: blob.len() as u64,
                         result: v.voxels.get_or_decode(id, &entry, &blob),
                     };
-                    let _ = lane.send(Background::Decode(v.cost.decode(entry.raw_bytes), decoded));
+                    let cost = v.cost.decode(entry.raw_bytes);
+                    let _ = lane.work.send(Background::Decode(cost, decoded));
                     return;
                 }
                 let tx = self.decoded.clone();
@@ -416,14 +423,16 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
         control: sender(me.clone(), "control message"),
         tiles: sender(me.clone(), "finished tile"),
         fetches: sender(me.clone(), "voxel fetch"),
-        background: opts.virtual_clock.as_ref().map(|v| {
-            let (tx, rx) = mpsc::unbounded_channel();
+        virtual_lane: opts.virtual_clock.as_ref().map(|v| {
+            let (work, rx) = mpsc::unbounded_channel();
             tokio::spawn(background_lane(rx, decoded_tx.clone(), v.cores.clone()));
-            tx
+            VirtualLane {
+                clock: v.clone(),
+                work,
+            }
         }),
         decoded: decoded_tx,
         threads: Vec::with_capacity(threads),
-        virtual_clock: opts.virtual_clock.clone(),
         group: group.clone(),
         in_progress: in_progress.clone(),
     };
@@ -495,12 +504,12 @@ pub async fn run_client(mut mb: Mailbox, opts: ClientOptions) -> Result<ClientSu
             Some(req) = req_rx.recv() => c.voxel_wanted(req, &mut out),
             Some(d) = decoded_rx.recv() => c.decoded(d, &mut out),
             Some(tiles) = done_rx.recv() => {
-                let host = outlets.virtual_clock.as_ref().filter(|v| v.cores.is_some());
-                if let Some((v, lane)) = host.zip(outlets.background.as_ref()) {
+                let one_host = outlets.virtual_lane.as_ref().filter(|l| l.clock.cores.is_some());
+                if let Some(lane) = one_host {
                     // What the host's other actors spend on these tiles
                     // takes its cores too.
                     let pixels = tiles.iter().map(|t| u64::from(t.job.tile.w) * u64::from(t.job.tile.h)).sum();
-                    let _ = lane.send(Background::Host(v.cost.host(pixels)));
+                    let _ = lane.work.send(Background::Host(lane.clock.cost.host(pixels)));
                 }
                 c.tiles_finished(tiles, &mut link, &mut out)
             }

@@ -499,6 +499,7 @@ mod tests {
             scheduler: names::scheduler(),
             display: names::display(),
             corrupt_voxel: CorruptVoxel::Fail,
+            virtual_clock: None,
         }
     }
 
@@ -613,7 +614,7 @@ mod tests {
             id,
             store: names::store(0),
             bytes: 100,
-            result,
+            result: result.map(Arc::new),
         };
         c.decoded(d, out);
     }
