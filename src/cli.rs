@@ -200,6 +200,11 @@ pub(crate) enum Command {
         /// the two), instead of each having a machine of its own.
         #[arg(long, value_name = "N", requires = "virtual_clock", value_parser = clap::value_parser!(u32).range(1..=4096))]
         host_cores: Option<u32>,
+        /// With --virtual: this cost model instead of calibrating one: a
+        /// run's `calibration.json` from an experiment (its `model`), or
+        /// the model's keys alone, as JSON.
+        #[arg(long, value_name = "FILE", requires = "virtual_clock")]
+        cost: Option<PathBuf>,
         /// Print the summary as one JSON line.
         #[arg(long)]
         json: bool,

@@ -314,6 +314,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
             isa,
             virtual_clock,
             host_cores,
+            cost,
             json,
         } => {
             let mut cfg = dray_config::Config::load(&config)?;
@@ -332,25 +333,33 @@ fn run(cli: Cli) -> Result<ExitCode> {
             if virtual_clock {
                 let kernel = isa.unwrap_or_else(dray_trace::render::Isa::detect);
                 let clients = clients.unwrap_or(cfg.clients.count);
-                let threads = dray_actors::costs::calibration_threads(&cfg, clients, host_cores);
-                let mut cal = dray_actors::costs::calibrate(&cfg, kernel, threads)
-                    .map_err(|e| anyhow::anyhow!("calibrating the cost model: {e}"))?;
-                if host_cores.is_some() {
-                    dray_actors::costs::measure_host_overhead(
-                        &cfg,
-                        clients,
-                        kernel,
-                        &mut cal.model,
-                    )
-                    .map_err(|e| anyhow::anyhow!("calibrating the cost model: {e}"))?;
-                }
+                let (model, calibration) = match cost {
+                    Some(file) => (read_cost_model(&file)?, None),
+                    None => {
+                        let threads =
+                            dray_actors::costs::calibration_threads(&cfg, clients, host_cores);
+                        let mut cal = dray_actors::costs::calibrate(&cfg, kernel, threads)
+                            .map_err(|e| anyhow::anyhow!("calibrating the cost model: {e}"))?;
+                        if host_cores.is_some() {
+                            dray_actors::costs::measure_host_overhead(
+                                &cfg,
+                                clients,
+                                kernel,
+                                &mut cal.model,
+                            )
+                            .map_err(|e| anyhow::anyhow!("calibrating the cost model: {e}"))?;
+                        }
+                        (cal.model, Some(cal))
+                    }
+                };
                 let run = dray_actors::costs::VirtualRun {
-                    cost: cal.model,
+                    cost: model,
                     host_cores,
                 };
                 let run = dray_actors::nodes::sim_virtual(&cfg, &opts, run)?;
                 let mut report = run.to_json();
-                report["calibration"] = serde_json::to_value(&cal)?;
+                report["cost_model"] = serde_json::to_value(model)?;
+                report["calibration"] = serde_json::to_value(&calibration)?;
                 print_report(&report, &[], json);
             } else {
                 let run = runtime()?.block_on(dray_actors::nodes::sim(&cfg, &opts))?;
@@ -458,6 +467,24 @@ fn runtime() -> Result<tokio::runtime::Runtime> {
         .enable_all()
         .build()
         .context("starting the async runtime")
+}
+
+/// A cost model from `file`: a virtual run's `calibration.json` (its
+/// `model`) or the model's keys alone.
+fn read_cost_model(file: &std::path::Path) -> Result<dray_actors::costs::CostModel> {
+    let text =
+        std::fs::read_to_string(file).with_context(|| format!("--cost {}", file.display()))?;
+    let mut v: serde_json::Value = serde_json::from_str(&text)
+        .with_context(|| format!("--cost {}: not JSON", file.display()))?;
+    if let Some(model) = v.get_mut("model") {
+        v = model.take();
+    }
+    let model: dray_actors::costs::CostModel = serde_json::from_value(v)
+        .with_context(|| format!("--cost {}: not a cost model", file.display()))?;
+    model
+        .validate(&format!("--cost {}", file.display()))
+        .map_err(anyhow::Error::msg)?;
+    Ok(model)
 }
 
 /// Prints a run's summary: the display's text (or JSON) and what happened.

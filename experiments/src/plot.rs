@@ -22,6 +22,7 @@ static FONT: &[u8] = include_bytes!("../fonts/DejaVuSans.ttf");
 
 /// One line of a chart: its label, its axis, and per x (x, median, min,
 /// max) over the repeats.
+#[derive(Clone)]
 struct Line {
     label: String,
     /// Drawn against the right-hand axis (the plot's second unit).
@@ -267,10 +268,37 @@ fn draw<DB: DrawingBackend>(
     lines: &[Line],
 ) -> Result<(), DrawingAreaErrorKind<DB::ErrorType>> {
     root.fill(&WHITE)?;
+    // A log axis is a linear one over log2(x), labelled with x.
+    let log = p.x_scale == crate::spec::Scale::Log;
+    let lines: Vec<Line> = if log {
+        lines
+            .iter()
+            .map(|l| Line {
+                points: l
+                    .points
+                    .iter()
+                    .map(|q| (q.0.log2(), q.1, q.2, q.3))
+                    .collect(),
+                ..l.clone()
+            })
+            .collect()
+    } else {
+        lines.to_vec()
+    };
+    let lines = &lines;
     let xs = range(
         lines.iter().flat_map(|l| l.points.iter().map(|q| q.0)),
         false,
     );
+    let x_text = |v: &f64| {
+        let x = if log { v.exp2() } else { *v };
+        let r = (x * 100.0).round() / 100.0;
+        if r == r.trunc() {
+            format!("{r:.0}")
+        } else {
+            format!("{r}")
+        }
+    };
     let two_axes = lines.iter().any(|l| l.secondary);
     let mut chart = ChartBuilder::on(&root)
         .caption(title, ("sans-serif", 22))
@@ -282,6 +310,7 @@ fn draw<DB: DrawingBackend>(
         .set_secondary_coord(xs.clone(), y_range(lines, true));
     chart
         .configure_mesh()
+        .x_label_formatter(&x_text)
         .x_desc(x_label(&p.x))
         .y_desc(y_label(p, false))
         .label_style(("sans-serif", 14))

@@ -124,6 +124,19 @@ pub struct Plot {
     pub y: Vec<String>,
     /// A swept key: one line per value.
     pub series: Option<String>,
+    /// The horizontal axis: `"linear"` (the default) or `"log"`, for a
+    /// sweep over powers (1, 2, 4, … 1024 clients).
+    #[serde(default)]
+    pub x_scale: Scale,
+}
+
+/// How an axis maps values.
+#[derive(Clone, Copy, Debug, Default, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "lowercase")]
+pub enum Scale {
+    #[default]
+    Linear,
+    Log,
 }
 
 impl Plot {
@@ -557,6 +570,16 @@ fn check_plot(
             return Err(bad(
                 "x",
                 format!("{:?} sweeps {v}, not a number: x must be numeric", p.x),
+            ));
+        }
+        let not_positive = xs.iter().find(|v| number(v).is_some_and(|x| x <= 0.0));
+        if let Some(v) = not_positive.filter(|_| p.x_scale == Scale::Log) {
+            return Err(bad(
+                "x_scale",
+                format!(
+                    "\"log\", but {:?} sweeps {v}: a log axis needs values above 0",
+                    p.x
+                ),
             ));
         }
     }

@@ -212,20 +212,7 @@ pub(crate) fn render_thread(
         dray_runtime::process::RENDER_THREAD_NICENESS,
     );
     futures::executor::block_on(render_loop(ctx, index, tiles, Meter::Wall));
-    thread_cpu_time()
-}
-
-/// CPU time of the calling thread.
-fn thread_cpu_time() -> std::time::Duration {
-    let mut t = libc::timespec {
-        tv_sec: 0,
-        tv_nsec: 0,
-    };
-    // SAFETY: `t` is a valid timespec for the call to fill.
-    if unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut t) } != 0 {
-        return std::time::Duration::ZERO;
-    }
-    std::time::Duration::new(t.tv_sec as u64, t.tv_nsec as u32)
+    crate::costs::cpu_time(libc::CLOCK_THREAD_CPUTIME_ID)
 }
 
 /// A render thread's loop, on its own thread ([`render_thread`]) or as a
@@ -241,123 +228,121 @@ pub(crate) async fn render_loop(
         MissMode::Suspend => ctx.tiles_in_progress.load(Ordering::Relaxed).max(1),
     };
     let ctx = &ctx;
-    {
-        let mut running = FuturesUnordered::new();
-        let mut open = true;
-        // Stall: waiting with tiles in progress (all of them blocked on
-        // voxels); waiting with none is idleness, not stall.
-        let mut stalled = std::time::Duration::ZERO;
-        let mut charged = std::time::Duration::ZERO;
-        let traced = Rc::new(Cell::new(std::time::Duration::ZERO));
-        // On the virtual clock: time slept past a charge's end.
-        let mut overslept = std::time::Duration::ZERO;
-        let (mut traced_total, mut idle) = (std::time::Duration::ZERO, std::time::Duration::ZERO);
-        // Idleness charged to tiles so far; `None` until the first tile
-        // arrives (waiting for it is not running out of work).
-        let mut idle_charged: Option<std::time::Duration> = None;
-        let chooser = Rc::new(Cell::new(PacketChooser::new(Packets::Auto)));
-        let start_job = |job: TileJob| Timed {
-            frame: job.frame,
-            inner: Box::pin(run_job(ctx, index, job, chooser.clone())),
-            traced: traced.clone(),
-            meter,
-        };
-        // Finished tiles not yet sent to the actor.
-        let mut unsent: Vec<TileResult> = Vec::new();
-        loop {
-            // Take what is waiting, up to the limit.
-            while open && running.len() < limit() {
-                match tiles.try_recv() {
-                    Ok(job) => {
-                        idle_charged.get_or_insert(idle);
-                        running.push(start_job(job))
-                    }
-                    Err(mpsc::error::TryRecvError::Empty) => break,
-                    Err(mpsc::error::TryRecvError::Disconnected) => open = false,
-                }
-            }
-            if ctx.stop.load(Ordering::Relaxed) {
-                open = false;
-            }
-            enum Event {
-                // Boxed: a result is larger than the other variants, and
-                // one allocation a tile is nothing beside the tile.
-                Done(Box<TileResult>),
-                Job(Option<TileJob>),
-                Idle,
-            }
-            let busy = !running.is_empty();
-            let waited = Instant::now();
-            traced.set(std::time::Duration::ZERO);
-            let event = if running.is_empty() {
-                if !open {
-                    break;
-                }
-                Event::Job(tiles.recv().await)
-            } else if open && running.len() < limit() {
-                let recv = tiles.recv();
-                futures::pin_mut!(recv);
-                match select(running.next(), recv).await {
-                    Either::Left((Some(r), _)) => Event::Done(Box::new(r)),
-                    Either::Left((None, _)) => Event::Idle,
-                    Either::Right((job, _)) => Event::Job(job),
-                }
-            } else {
-                match running.next().await {
-                    Some(r) => Event::Done(Box::new(r)),
-                    None => Event::Idle,
-                }
-            };
-            let spent = traced.take();
-            traced_total += spent;
-            // Polling the tiles traces their ready packets; what is left of
-            // the wait is time with nothing runnable. On the virtual clock
-            // polls take no time: the thread is charged for them now.
-            let waited = match meter {
-                Meter::Wall => waited.elapsed().saturating_sub(spent),
-                Meter::Model(_) => {
-                    let w = waited.elapsed();
-                    charge(spent, &mut overslept, ctx.cores.as_deref()).await;
-                    w
-                }
-            };
-            if busy {
-                stalled += waited;
-            } else {
-                idle += waited;
-            }
-            match event {
-                Event::Done(mut r) => {
-                    r.stall = stalled - charged;
-                    charged = stalled;
-                    if let Some(c) = idle_charged.as_mut() {
-                        r.idle = idle - *c;
-                        *c = idle;
-                    }
-                    unsent.push(*r);
-                    let frame_over = |f: u64| !running.iter().any(|t| t.frame == f);
-                    let group = ctx.group.load(Ordering::Relaxed);
-                    if unsent.len() >= group || unsent.iter().any(|r| frame_over(r.job.frame)) {
-                        let _ = ctx.results.send(std::mem::take(&mut unsent));
-                    }
-                }
-                Event::Job(Some(job)) => {
+    let mut running = FuturesUnordered::new();
+    let mut open = true;
+    // Stall: waiting with tiles in progress (all of them blocked on
+    // voxels); waiting with none is idleness, not stall.
+    let mut stalled = std::time::Duration::ZERO;
+    let mut charged = std::time::Duration::ZERO;
+    let traced = Rc::new(Cell::new(std::time::Duration::ZERO));
+    // On the virtual clock: time slept past a charge's end.
+    let mut overslept = std::time::Duration::ZERO;
+    let (mut traced_total, mut idle) = (std::time::Duration::ZERO, std::time::Duration::ZERO);
+    // Idleness charged to tiles so far; `None` until the first tile
+    // arrives (waiting for it is not running out of work).
+    let mut idle_charged: Option<std::time::Duration> = None;
+    let chooser = Rc::new(Cell::new(PacketChooser::new(Packets::Auto)));
+    let start_job = |job: TileJob| Timed {
+        frame: job.frame,
+        inner: Box::pin(run_job(ctx, index, job, chooser.clone())),
+        traced: traced.clone(),
+        meter,
+    };
+    // Finished tiles not yet sent to the actor.
+    let mut unsent: Vec<TileResult> = Vec::new();
+    loop {
+        // Take what is waiting, up to the limit.
+        while open && running.len() < limit() {
+            match tiles.try_recv() {
+                Ok(job) => {
                     idle_charged.get_or_insert(idle);
                     running.push(start_job(job))
                 }
-                Event::Job(None) => open = false,
-                Event::Idle => {}
+                Err(mpsc::error::TryRecvError::Empty) => break,
+                Err(mpsc::error::TryRecvError::Disconnected) => open = false,
             }
         }
-        if !unsent.is_empty() {
-            let _ = ctx.results.send(unsent);
+        if ctx.stop.load(Ordering::Relaxed) {
+            open = false;
         }
-        tracing::info!(
-            thread = index,
-            traced_s = traced_total.as_secs_f64(),
-            stalled_s = stalled.as_secs_f64(),
-            idle_s = idle.as_secs_f64(),
-            "render thread done"
-        );
+        enum Event {
+            // Boxed: a result is larger than the other variants, and
+            // one allocation a tile is nothing beside the tile.
+            Done(Box<TileResult>),
+            Job(Option<TileJob>),
+            Idle,
+        }
+        let busy = !running.is_empty();
+        let waited = Instant::now();
+        traced.set(std::time::Duration::ZERO);
+        let event = if running.is_empty() {
+            if !open {
+                break;
+            }
+            Event::Job(tiles.recv().await)
+        } else if open && running.len() < limit() {
+            let recv = tiles.recv();
+            futures::pin_mut!(recv);
+            match select(running.next(), recv).await {
+                Either::Left((Some(r), _)) => Event::Done(Box::new(r)),
+                Either::Left((None, _)) => Event::Idle,
+                Either::Right((job, _)) => Event::Job(job),
+            }
+        } else {
+            match running.next().await {
+                Some(r) => Event::Done(Box::new(r)),
+                None => Event::Idle,
+            }
+        };
+        let spent = traced.take();
+        traced_total += spent;
+        // Polling the tiles traces their ready packets; what is left of
+        // the wait is time with nothing runnable. On the virtual clock
+        // polls take no time: the thread is charged for them now.
+        let waited = match meter {
+            Meter::Wall => waited.elapsed().saturating_sub(spent),
+            Meter::Model(_) => {
+                let w = waited.elapsed();
+                charge(spent, &mut overslept, ctx.cores.as_deref()).await;
+                w
+            }
+        };
+        if busy {
+            stalled += waited;
+        } else {
+            idle += waited;
+        }
+        match event {
+            Event::Done(mut r) => {
+                r.stall = stalled - charged;
+                charged = stalled;
+                if let Some(c) = idle_charged.as_mut() {
+                    r.idle = idle - *c;
+                    *c = idle;
+                }
+                unsent.push(*r);
+                let frame_over = |f: u64| !running.iter().any(|t| t.frame == f);
+                let group = ctx.group.load(Ordering::Relaxed);
+                if unsent.len() >= group || unsent.iter().any(|r| frame_over(r.job.frame)) {
+                    let _ = ctx.results.send(std::mem::take(&mut unsent));
+                }
+            }
+            Event::Job(Some(job)) => {
+                idle_charged.get_or_insert(idle);
+                running.push(start_job(job))
+            }
+            Event::Job(None) => open = false,
+            Event::Idle => {}
+        }
     }
+    if !unsent.is_empty() {
+        let _ = ctx.results.send(unsent);
+    }
+    tracing::info!(
+        thread = index,
+        traced_s = traced_total.as_secs_f64(),
+        stalled_s = stalled.as_secs_f64(),
+        idle_s = idle.as_secs_f64(),
+        "render thread done"
+    );
 }
