@@ -345,6 +345,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
                                 &cfg,
                                 clients,
                                 kernel,
+                                &dray_actors::costs::HostEngine::Sim,
                                 &mut cal.model,
                             )
                             .map_err(|e| anyhow::anyhow!("calibrating the cost model: {e}"))?;

@@ -24,6 +24,7 @@ use dray_trace::tile::{render_tile_sample, LoadError, MissMode, Rect, VoxelLoade
 use dray_trace::work::Work;
 use futures::future::BoxFuture;
 use serde::{Deserialize, Serialize};
+use std::path::Path;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -315,24 +316,42 @@ pub fn calibrate(cfg: &Config, isa: Isa, threads: usize) -> Result<Calibration, 
     })
 }
 
+/// The real engine whose host a virtual run on one host stands for: how
+/// [`measure_host_overhead`] measures what the host's other actors cost.
+pub enum HostEngine<'a> {
+    /// Every node in one process (`dray sim`).
+    Sim,
+    /// Every node a process over QUIC (`dray cluster`), started from the
+    /// `dray` binary with the config written at `config_file`.
+    Cluster {
+        dray: &'a Path,
+        config_file: &'a Path,
+    },
+}
+
 /// Measures [`CostModel::ns_per_pixel_host`]: runs the real `sim` of `cfg`
 /// with `clients` clients, once for its first frame and once whole, and
 /// takes the process's CPU time that neither the render threads nor the
 /// decodes (as `model` prices them) account for, per pixel of the
-/// difference (which leaves out what starting a run costs). Sets it in
-/// `model`.
+/// difference (which leaves out what starting a run costs). For
+/// [`HostEngine::Cluster`] it then runs the cluster once whole and adds
+/// the CPU time (its processes' and this one's) it spent beyond `sim`'s
+/// whole run, per pixel: the same frames, rays and voxels, carried over
+/// QUIC, TLS and relays between processes. Sets it in `model`.
 pub fn measure_host_overhead(
     cfg: &Config,
     clients: u32,
     isa: Isa,
+    engine: &HostEngine,
     model: &mut CostModel,
 ) -> Result<(), String> {
     let rt = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
         .map_err(|e| format!("cannot start a runtime: {e}"))?;
-    // (CPU seconds not accounted for, pixels shown) of a run.
-    let overhead = |frames: Option<usize>| -> Result<(f64, u64), String> {
+    // (CPU seconds in all, CPU seconds not accounted for, pixels shown) of
+    // a run.
+    let overhead = |frames: Option<usize>| -> Result<(f64, f64, u64), String> {
         let opts = crate::nodes::RunOptions {
             clients: Some(clients),
             isa: Some(isa),
@@ -351,13 +370,39 @@ pub fn measure_host_overhead(
         let pixels = run.display.frames_shown as u64
             * u64::from(cfg.render.width)
             * u64::from(cfg.render.height);
-        Ok((cpu - render - decode, pixels))
+        Ok((cpu, cpu - render - decode, pixels))
     };
-    let (short, few) = overhead(Some(1))?;
-    let (long, many) = overhead(None)?;
-    model.ns_per_pixel_host =
-        ((long - short).max(0.0) * 1e9) / many.saturating_sub(few).max(1) as f64;
+    let (_, short, few) = overhead(Some(1))?;
+    let (sim_cpu, long, many) = overhead(None)?;
+    let mut ns = ((long - short).max(0.0) * 1e9) / many.saturating_sub(few).max(1) as f64;
+    if let HostEngine::Cluster { dray, config_file } = engine {
+        let before = process_cpu() + children_cpu();
+        let report = rt
+            .block_on(crate::supervisor::cluster(dray, config_file, cfg, &[]))
+            .map_err(|e| format!("measuring the cluster's overhead: {e}"))?;
+        if report.summary["complete"] != serde_json::Value::Bool(true) {
+            return Err("measuring the cluster's overhead: the run stopped early".into());
+        }
+        let cpu = (process_cpu() + children_cpu())
+            .saturating_sub(before)
+            .as_secs_f64();
+        ns += ((cpu - sim_cpu).max(0.0) * 1e9) / many.max(1) as f64;
+    }
+    model.ns_per_pixel_host = ns;
     Ok(())
+}
+
+/// CPU time of this process's children that have ended and been waited
+/// for.
+fn children_cpu() -> Duration {
+    // SAFETY: an all-zero rusage is a valid value for the call to fill.
+    let mut u: libc::rusage = unsafe { std::mem::zeroed() };
+    // SAFETY: `u` is a valid rusage for the call to fill.
+    if unsafe { libc::getrusage(libc::RUSAGE_CHILDREN, &mut u) } != 0 {
+        return Duration::ZERO;
+    }
+    let t = |v: libc::timeval| Duration::new(v.tv_sec as u64, v.tv_usec as u32 * 1000);
+    t(u.ru_utime) + t(u.ru_stime)
 }
 
 /// CPU time of this process so far.

@@ -1,8 +1,8 @@
 //! Running one point once, on one engine, and collecting what the display
 //! reports (or, for `render`, the same figures of the frames it traced).
 
-use crate::spec::{Engine, VirtualEngine};
-use dray_actors::costs::{Calibration, CostModel, VirtualRun};
+use crate::spec::{Engine, HostOverhead, VirtualEngine};
+use dray_actors::costs::{Calibration, CostModel, HostEngine, VirtualRun};
 use dray_actors::nodes::RunOptions;
 use dray_config::Config;
 use std::path::Path;
@@ -45,7 +45,12 @@ impl CostModels {
 
     /// The cost model for `cfg`: the file's fixed one, or measured on this
     /// machine (once for every run alike).
-    fn for_run(&mut self, cfg: &Config) -> Result<(CostModel, Option<Calibration>), String> {
+    fn for_run(
+        &mut self,
+        cfg: &Config,
+        config_file: &Path,
+        dray: Option<&Path>,
+    ) -> Result<(CostModel, Option<Calibration>), String> {
         if let Some(fixed) = self.spec.cost {
             return Ok((fixed, None));
         }
@@ -53,18 +58,26 @@ impl CostModels {
         let clients = cfg.clients.count;
         let threads = dray_actors::costs::calibration_threads(cfg, clients, self.spec.host_cores);
         let key = format!(
-            "{}|{:?}|{}|{threads}|{}",
+            "{}|{:?}|{}|{threads}|{}|{:?}",
             cfg.scene.database.display(),
             cfg.render,
             isa.name(),
             self.spec.host_cores.map_or(0, |_| clients),
+            self.spec.host_overhead,
         );
         if let Some(c) = self.measured.get(&key) {
             return Ok((c.model, Some(c.clone())));
         }
         let mut c = dray_actors::costs::calibrate(cfg, isa, threads)?;
         if self.spec.host_cores.is_some() {
-            dray_actors::costs::measure_host_overhead(cfg, clients, isa, &mut c.model)?;
+            let engine = match self.spec.host_overhead {
+                HostOverhead::Sim => HostEngine::Sim,
+                HostOverhead::Cluster => HostEngine::Cluster {
+                    dray: dray.ok_or("measuring the cluster's overhead needs the dray binary")?,
+                    config_file,
+                },
+            };
+            dray_actors::costs::measure_host_overhead(cfg, clients, isa, &engine, &mut c.model)?;
         }
         self.measured.insert(key, c.clone());
         Ok((c.model, Some(c)))
@@ -72,14 +85,20 @@ impl CostModels {
 
     /// The virtual run of `cfg`, its cost model written beside
     /// `config_file`.
-    fn prepare(&mut self, cfg: &Config, config_file: &Path) -> Result<VirtualRun, RunFailure> {
+    fn prepare(
+        &mut self,
+        cfg: &Config,
+        config_file: &Path,
+        dray: Option<&Path>,
+    ) -> Result<VirtualRun, RunFailure> {
         let (cost, calibration) = self
-            .for_run(cfg)
+            .for_run(cfg, config_file, dray)
             .map_err(|e| RunFailure::Failed(format!("calibrating the cost model: {e}")))?;
         let record = serde_json::json!({
             "model": cost,
             "calibration": calibration,
             "host_cores": self.spec.host_cores,
+            "host_overhead": self.spec.host_cores.map(|_| format!("{:?}", self.spec.host_overhead).to_lowercase()),
             "speed": cfg.clients.speed,
             "decode_speed": cfg.clients.decode_speed,
         });
@@ -116,7 +135,7 @@ pub(crate) fn run(
         }
         Engine::Render => render(cfg).map_err(RunFailure::Failed)?,
         Engine::Virtual => {
-            let run = costs.prepare(cfg, config_file)?;
+            let run = costs.prepare(cfg, config_file, dray)?;
             // Calibrating is not the run.
             start = Instant::now();
             dray_actors::nodes::sim_virtual(cfg, &RunOptions::default(), run)

@@ -208,6 +208,19 @@ pub struct VirtualEngine {
     /// A fixed cost model instead of calibrating one (every key of
     /// [`dray_actors::costs::CostModel`]): runs that repeat exactly.
     pub cost: Option<dray_actors::costs::CostModel>,
+    /// With `host_cores`: the real engine whose host's overhead is
+    /// measured, `sim` (the default) or `cluster`.
+    #[serde(default)]
+    pub host_overhead: HostOverhead,
+}
+
+/// The real engine a virtual run on one host stands for.
+#[derive(Clone, Copy, Debug, Default, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "lowercase")]
+pub enum HostOverhead {
+    #[default]
+    Sim,
+    Cluster,
 }
 
 #[derive(Deserialize)]
@@ -347,6 +360,14 @@ impl Experiment {
         if let Some(cost) = &raw.virtual_engine.cost {
             cost.validate("virtual.cost")
                 .map_err(|e| ExperimentError::invalid(&file, "virtual.cost", e))?;
+        }
+        if raw.virtual_engine.host_overhead != HostOverhead::Sim
+            && raw.virtual_engine.host_cores.is_none()
+        {
+            return Err(bad(
+                "virtual.host_overhead",
+                "only means something with virtual.host_cores".into(),
+            ));
         }
         if let Some(n) = raw.virtual_engine.host_cores {
             if !(1..=4096).contains(&n) {

@@ -519,3 +519,83 @@ fn the_engine_can_be_swept() {
         &["render", "sim"],
     );
 }
+
+/// The virtual engine with a fixed cost model: twice the same experiment
+/// gives the same `points.csv` in every measured column but `wall_s`; a
+/// labelled sweep value shows its label and configures its value; a log
+/// axis draws.
+#[test]
+fn a_virtual_experiment_repeats_exactly() {
+    let tmp = tempfile::tempdir().unwrap();
+    let stores = |n: u32| -> String {
+        let list: Vec<String> = (0..n)
+            .map(|i| {
+                format!(
+                    "{{ address = \"127.0.0.1:{}\", shard = \"{i}/{n}\" }}",
+                    7410 + i
+                )
+            })
+            .collect();
+        format!("{{ label = {n}, value = [{}] }}", list.join(", "))
+    };
+    let file = tiny_experiment(
+        tmp.path(),
+        "virtual",
+        &format!(
+            "\"clients.speed\" = 0.5\n\
+             \"links.client_store.latency_ms\" = 2.0\n\
+             [walk]\nframes = 3\n\
+             [virtual]\ncost = {{ ns_per_tile = 5000.0, ns_per_primary_ray = 200.0, \
+             ns_per_secondary_ray = 100.0, ns_per_voxel_visit = 300.0, ns_per_decoded_byte = 2.0 }}\n\
+             [sweep]\n\"clients.max_tiles_ahead\" = [1, 8]\nstores = [{}, {}]\n\
+             [[plot]]\nx = \"clients.max_tiles_ahead\"\nx_scale = \"log\"\ny = \"fps\"\n\
+             series = \"stores\"\n",
+            stores(1),
+            stores(2)
+        ),
+    )
+    .to_path_buf();
+    let text = std::fs::read_to_string(&file)
+        .unwrap()
+        .replace("engine = \"sim\"", "engine = \"virtual\"");
+    std::fs::write(&file, text).unwrap();
+    let measured = |out: &str| -> Vec<Vec<String>> {
+        let opts = Options {
+            out: Some(tmp.path().join(out)),
+            models: tmp.path().join("models"),
+            ..Options::default()
+        };
+        let report = run(&file, &opts).unwrap();
+        assert_eq!(report.runs_done, 4);
+        assert_valid_plot(
+            &report.dir,
+            "plot1-fps-by-max_tiles_ahead",
+            &["stores=1", "stores=2"],
+        );
+        let rows = csv_rows(&report.dir.join(POINTS_CSV));
+        let wall = rows[0].iter().position(|h| h == "wall_s").unwrap();
+        // The stores are shown by their label.
+        let stores = rows[0].iter().position(|h| h == "stores").unwrap();
+        assert_eq!(
+            rows[1..]
+                .iter()
+                .map(|r| r[stores].as_str())
+                .collect::<BTreeSet<_>>(),
+            BTreeSet::from(["1", "2"])
+        );
+        rows.into_iter()
+            .map(|mut r| {
+                r.remove(wall);
+                r
+            })
+            .collect()
+    };
+    let first = measured("a");
+    let second = measured("b");
+    assert_eq!(first, second);
+    // Both stores served: the shards reached the config.
+    let fps = first[0].iter().position(|h| h == "fps").unwrap();
+    assert!(first[1..]
+        .iter()
+        .all(|r| r[fps].parse::<f64>().unwrap() > 0.0));
+}
