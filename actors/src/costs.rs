@@ -1,20 +1,24 @@
 //! The virtual engine's cost model: what a client's tracing and decoding
 //! would take on a real machine, charged to the virtual clock
-//! ([`crate::nodes::VirtualClock`]) instead of measured.
+//! ([`crate::nodes::sim_virtual`]) instead of measured.
 //!
 //! A render thread's time is linear in the work it counts
 //! ([`dray_trace::work::Work`]): a cost per tile started, per primary ray,
 //! per shadow or reflection ray and per voxel a packet enters (the
 //! top-level walk, and a proxy for the nodes and triangles behind it). A
-//! decode costs a time per byte of the voxel after decompression.
-//! [`calibrate`] measures these on this machine, with the run's own model,
-//! views and kernel: it traces tiles of the run's cameras with every voxel
-//! resident, one thread, timing each, fits the tile costs by least squares,
-//! and times the decoding of a sample of the database's voxels.
-//! `clients.speed` scales the tracing costs (2 is a client twice as fast
-//! as this machine's core), `clients.decode_speed` the decoding cost. Calibration traces on as many threads at once as
-//! a client has (or as the host has cores, where the clients share one),
-//! since cores that share a machine trace slower than one alone.
+//! decode costs a time per byte of the voxel after decompression. Where
+//! the clients share one host, each finished pixel also costs the host
+//! what its other actors spend on it.
+//!
+//! [`calibrate`] measures the tracing and decoding costs on this machine,
+//! with the run's own model, views and kernel: it traces tiles of the
+//! run's cameras with every voxel resident, on as many threads at once as
+//! a client has (or as the shared host has cores), timing each; fits the
+//! tile costs by least squares; and times the decoding of a sample of the
+//! database's voxels. [`measure_host_overhead`] measures the host's cost
+//! by running the real engine. `clients.speed` scales the tracing costs
+//! (2 is a client twice as fast as this machine's core),
+//! `clients.decode_speed` the decoding cost.
 
 use crate::settings::{kernel_camera, kernel_settings, wire_settings};
 use dray_config::Config;
@@ -29,7 +33,8 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 /// What the virtual engine gives each client: the cost model (already
-/// scaled by `clients.speed`) and the process's shared decoded voxels.
+/// scaled by `clients.speed` and `clients.decode_speed`), the process's
+/// shared decoded voxels and, where the clients share one host, its cores.
 #[derive(Clone)]
 pub struct VirtualClock {
     pub cost: CostModel,
@@ -254,7 +259,7 @@ pub fn calibrate(cfg: &Config, isa: Isa, threads: usize) -> Result<Calibration, 
                     chooser.learn(image.stats.child_hits, image.stats.child_lanes);
                 }
                 times.sort_by(f64::total_cmp);
-                let best = times[1];
+                let median = times[1];
                 rows.push((
                     [
                         work.tiles as f64,
@@ -262,7 +267,7 @@ pub fn calibrate(cfg: &Config, isa: Isa, threads: usize) -> Result<Calibration, 
                         work.secondary_rays as f64,
                         work.voxel_visits as f64,
                     ],
-                    best,
+                    median,
                 ));
             }
         }
