@@ -336,20 +336,14 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 let (model, calibration) = match cost {
                     Some(file) => (read_cost_model(&file)?, None),
                     None => {
-                        let threads =
-                            dray_actors::costs::calibration_threads(&cfg, clients, host_cores);
-                        let mut cal = dray_actors::costs::calibrate(&cfg, kernel, threads)
-                            .map_err(|e| anyhow::anyhow!("calibrating the cost model: {e}"))?;
-                        if host_cores.is_some() {
-                            dray_actors::costs::measure_host_overhead(
-                                &cfg,
-                                clients,
-                                kernel,
-                                &dray_actors::costs::HostEngine::Sim,
-                                &mut cal.model,
-                            )
-                            .map_err(|e| anyhow::anyhow!("calibrating the cost model: {e}"))?;
-                        }
+                        let cal = dray_actors::costs::measure(
+                            &cfg,
+                            clients,
+                            kernel,
+                            host_cores,
+                            &dray_actors::costs::HostEngine::Sim,
+                        )
+                        .map_err(|e| anyhow::anyhow!("calibrating the cost model: {e}"))?;
                         (cal.model, Some(cal))
                     }
                 };

@@ -176,6 +176,25 @@ pub fn calibration_threads(cfg: &Config, clients: u32, host_cores: Option<u32>) 
     }
 }
 
+/// The cost model of a virtual run of `cfg` with `clients` clients, kernel
+/// `isa`, measured on this machine: [`calibrate`] on the threads
+/// [`calibration_threads`] gives, and where the clients share a host of
+/// `host_cores`, [`measure_host_overhead`] on `engine`.
+pub fn measure(
+    cfg: &Config,
+    clients: u32,
+    isa: Isa,
+    host_cores: Option<u32>,
+    engine: &HostEngine,
+) -> Result<Calibration, String> {
+    let threads = calibration_threads(cfg, clients, host_cores);
+    let mut c = calibrate(cfg, isa, threads)?;
+    if host_cores.is_some() {
+        measure_host_overhead(cfg, clients, isa, engine, &mut c.model)?;
+    }
+    Ok(c)
+}
+
 /// Most tiles traced per camera: enough for the fit, few enough to keep
 /// calibrating a large frame short.
 const TILES_PER_CAMERA: usize = 400;

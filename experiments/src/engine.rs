@@ -68,17 +68,14 @@ impl CostModels {
         if let Some(c) = self.measured.get(&key) {
             return Ok((c.model, Some(c.clone())));
         }
-        let mut c = dray_actors::costs::calibrate(cfg, isa, threads)?;
-        if self.spec.host_cores.is_some() {
-            let engine = match self.spec.host_overhead {
-                HostOverhead::Sim => HostEngine::Sim,
-                HostOverhead::Cluster => HostEngine::Cluster {
-                    dray: dray.ok_or("measuring the cluster's overhead needs the dray binary")?,
-                    config_file,
-                },
-            };
-            dray_actors::costs::measure_host_overhead(cfg, clients, isa, &engine, &mut c.model)?;
-        }
+        let engine = match self.spec.host_overhead {
+            HostOverhead::Sim => HostEngine::Sim,
+            HostOverhead::Cluster => HostEngine::Cluster {
+                dray: dray.ok_or("measuring the cluster's overhead needs the dray binary")?,
+                config_file,
+            },
+        };
+        let c = dray_actors::costs::measure(cfg, clients, isa, self.spec.host_cores, &engine)?;
         self.measured.insert(key, c.clone());
         Ok((c.model, Some(c)))
     }
