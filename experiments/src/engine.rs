@@ -95,7 +95,7 @@ impl CostModels {
             "model": cost,
             "calibration": calibration,
             "host_cores": self.spec.host_cores,
-            "host_overhead": self.spec.host_cores.map(|_| format!("{:?}", self.spec.host_overhead).to_lowercase()),
+            "host_overhead": self.spec.host_cores.map(|_| self.spec.host_overhead),
             "speed": cfg.clients.speed,
             "decode_speed": cfg.clients.decode_speed,
         });

@@ -215,7 +215,7 @@ pub struct VirtualEngine {
 }
 
 /// The real engine a virtual run on one host stands for.
-#[derive(Clone, Copy, Debug, Default, Deserialize, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, Default, Deserialize, serde::Serialize, PartialEq, Eq)]
 #[serde(rename_all = "lowercase")]
 pub enum HostOverhead {
     #[default]

@@ -16,7 +16,6 @@ use std::sync::{Arc, Mutex, Weak};
 #[derive(Default)]
 pub struct DecodedVoxels {
     live: Mutex<HashMap<u32, Shared>>,
-    decoded: std::sync::atomic::AtomicU64,
 }
 
 #[derive(Default)]
@@ -49,15 +48,9 @@ impl DecodedVoxels {
             }
         }
         let v = super::loader::decode(id, entry, blob)?;
-        self.decoded
-            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-        let mut live = self.lock();
-        // Forget voxels no client holds any more, now and then: the map
-        // stays as large as what is held.
-        if live.len() >= 1024 && live.len().is_power_of_two() {
-            live.retain(|_, s| s.voxel.strong_count() > 0 || s.caches > 0);
-        }
-        live.entry(id).or_default().voxel = Arc::downgrade(&v);
+        // One entry per voxel id at most: a voxel no one holds keeps only
+        // its entry, not its data.
+        self.lock().entry(id).or_default().voxel = Arc::downgrade(&v);
         Ok(v)
     }
 
@@ -72,16 +65,11 @@ impl DecodedVoxels {
         }
     }
 
-    /// Whether `v` is held by nothing but clients' caches (`mine` of its
-    /// holders being the asking cache's own).
+    /// Whether `v` is held by nothing but clients' caches (the asking
+    /// cache's own hold among them).
     pub(crate) fn only_cached(&self, v: &Arc<PreparedVoxel>) -> bool {
         let caches = self.lock().get(&v.id).map_or(1, |s| s.caches.max(1));
         Arc::strong_count(v) <= caches
-    }
-
-    /// Voxels decoded so far (not those shared).
-    pub fn decodes(&self) -> u64 {
-        self.decoded.load(std::sync::atomic::Ordering::Relaxed)
     }
 
     fn lock(&self) -> std::sync::MutexGuard<'_, HashMap<u32, Shared>> {
