@@ -266,7 +266,8 @@ pub struct Frame {
 }
 
 impl Frame {
-    const TOP: u16 = u16::MAX;
+    /// The largest quantum.
+    pub const TOP: u16 = u16::MAX;
 
     /// The frame of a voxel without nodes.
     pub const EMPTY: Frame = Frame {

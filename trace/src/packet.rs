@@ -29,7 +29,7 @@
 #[cfg(target_arch = "x86_64")]
 mod group;
 
-use crate::accel::{prefetch, PreparedVoxel, TopLevel, TopNode, VoxelSource, WideNode};
+use crate::accel::{prefetch, Frame, PreparedVoxel, TopLevel, TopNode, VoxelSource, WideNode};
 use crate::quad;
 use glam::Vec3;
 
@@ -423,6 +423,11 @@ impl<const N: usize> Packet<N> {
         // and load would sit on the path from one node load to the next.
         let mut next = (0u32, L::root(self, seg));
         let dir0 = [self.dir[0][0], self.dir[1][0], self.dir[2][0]];
+        let frame = if L::KEEPS_LANES || N > 16 {
+            None
+        } else {
+            FrameRays::new(self, &vox.frame)
+        };
         loop {
             let (entry, lanes) = if next.0 != NONE {
                 next
@@ -442,8 +447,11 @@ impl<const N: usize> Packet<N> {
             }
             let node = &vox.nodes[entry as usize];
             prefetch_children::<N>(vox, node);
-            let (bmin, bmax) = dequantize(vox, node);
-            let tested = L::node(self, lanes, node, (&bmin, &bmax), seg);
+            let boxes = match &frame {
+                Some(f) => Boxes::Frame(f.node(self, node, seg)),
+                None => Boxes::Planes(dequantize(vox, node)),
+            };
+            let tested = L::node(self, lanes, node, &boxes, seg);
             // Test every child box; for nearest-hit queries, order the hit
             // ones by where the first ray meets their centres.
             let mut hits = [(0.0f32, (0u32, lanes)); 4];
@@ -452,10 +460,8 @@ impl<const N: usize> Packet<N> {
                 if node.kind(c) == WideNode::EMPTY {
                     break;
                 }
-                let min = [bmin[0][c], bmin[1][c], bmin[2][c]];
-                let max = [bmax[0][c], bmax[1][c], bmax[2][c]];
                 let Some((child_lanes, mask)) =
-                    L::child(self, lanes, &tested, c, (min, max), seg, HAND_OFF)
+                    L::child(self, lanes, &tested, c, &boxes, seg, HAND_OFF)
                 else {
                     continue;
                 };
@@ -466,7 +472,12 @@ impl<const N: usize> Packet<N> {
                     continue;
                 }
                 if let Some(e) = self.child_entry(shear, vox, node, c) {
-                    hits[n] = (self.child_key(min, max, dir0), (e, child_lanes));
+                    let key = if self.any_hit {
+                        0.0
+                    } else {
+                        boxes.key(c, dir0)
+                    };
+                    hits[n] = (key, (e, child_lanes));
                     n += 1;
                 }
             }
@@ -562,17 +573,6 @@ impl<const N: usize> Packet<N> {
         }
     }
 
-    /// Where the first ray meets the centre of the box `min`..`max`: the
-    /// order of a nearest-hit packet's children (none for any-hit ones).
-    #[inline(always)]
-    fn child_key(&self, min: [f32; 3], max: [f32; 3], dir0: [f32; 3]) -> f32 {
-        if self.any_hit {
-            0.0
-        } else {
-            (min[0] + max[0]) * dir0[0] + (min[1] + max[1]) * dir0[1] + (min[2] + max[2]) * dir0[2]
-        }
-    }
-
     /// Counts a child box entered by `lanes` lanes (`count_lanes`).
     #[inline(always)]
     fn count_child(&mut self, lanes: u32) {
@@ -586,6 +586,9 @@ impl<const N: usize> Packet<N> {
 trait EntryLanes<const N: usize>: Copy {
     /// What a node works out before its children are tested one by one.
     type Tested;
+    /// Whether entries keep their own lanes: such searches test boxes as
+    /// planes ([`Boxes::Planes`]), which `crate::quad` reads.
+    const KEEPS_LANES: bool;
     /// The lanes of the voxel's root: those whose interval `seg` is not
     /// empty.
     fn root(p: &Packet<N>, seg: (&[f32; N], &[f32; N])) -> Self;
@@ -594,10 +597,10 @@ trait EntryLanes<const N: usize>: Copy {
         p: &Packet<N>,
         lanes: Self,
         node: &WideNode,
-        boxes: (&[[f32; 4]; 3], &[[f32; 4]; 3]),
+        boxes: &Boxes<'_, N>,
         seg: (&[f32; N], &[f32; N]),
     ) -> Self::Tested;
-    /// The lanes of `lanes` that enter child `c` (`min`, `max`), if any,
+    /// The lanes of `lanes` that enter child `c` of `boxes`, if any,
     /// counted where the packet counts its lanes; with them, a bit for
     /// each where `masks` asks (a shadow packet that hands subtrees over
     /// to groups), else `u32::MAX`.
@@ -607,7 +610,7 @@ trait EntryLanes<const N: usize>: Copy {
         lanes: Self,
         tested: &Self::Tested,
         c: usize,
-        child: ([f32; 3], [f32; 3]),
+        boxes: &Boxes<'_, N>,
         seg: (&[f32; N], &[f32; N]),
         masks: bool,
     ) -> Option<(Self, u32)>;
@@ -619,6 +622,7 @@ struct AllLanes;
 
 impl<const N: usize> EntryLanes<N> for AllLanes {
     type Tested = ();
+    const KEEPS_LANES: bool = false;
 
     #[inline(always)]
     fn root(_: &Packet<N>, _: (&[f32; N], &[f32; N])) -> Self {
@@ -626,26 +630,19 @@ impl<const N: usize> EntryLanes<N> for AllLanes {
     }
 
     #[inline(always)]
-    fn node(
-        _: &Packet<N>,
-        _: Self,
-        _: &WideNode,
-        _: (&[[f32; 4]; 3], &[[f32; 4]; 3]),
-        _: (&[f32; N], &[f32; N]),
-    ) {
-    }
+    fn node(_: &Packet<N>, _: Self, _: &WideNode, _: &Boxes<'_, N>, _: (&[f32; N], &[f32; N])) {}
 
     #[inline(always)]
     fn child(
         p: &mut Packet<N>,
         _: Self,
         _: &(),
-        _: usize,
-        (min, max): ([f32; 3], [f32; 3]),
+        c: usize,
+        boxes: &Boxes<'_, N>,
         seg: (&[f32; N], &[f32; N]),
         masks: bool,
     ) -> Option<(Self, u32)> {
-        let (t0, t1) = p.slab_within(min, max, seg.0, seg.1);
+        let (t0, t1) = boxes.interval(p, c, seg);
         if N == 16 && masks {
             // Shadow packets, which never count their lanes. SAFETY:
             // `masks` only for packets with `groups`, set only where the
@@ -683,6 +680,7 @@ struct LaneMask(u32);
 impl<const N: usize> EntryLanes<N> for LaneMask {
     /// The lanes entering each child where at most four entered the node.
     type Tested = Option<[u32; 4]>;
+    const KEEPS_LANES: bool = true;
 
     #[inline(always)]
     fn root(_: &Packet<N>, seg: (&[f32; N], &[f32; N])) -> Self {
@@ -694,9 +692,12 @@ impl<const N: usize> EntryLanes<N> for LaneMask {
         p: &Packet<N>,
         lanes: Self,
         node: &WideNode,
-        (bmin, bmax): (&[[f32; 4]; 3], &[[f32; 4]; 3]),
+        boxes: &Boxes<'_, N>,
         seg: (&[f32; N], &[f32; N]),
     ) -> Option<[u32; 4]> {
+        let Boxes::Planes((bmin, bmax)) = boxes else {
+            return None;
+        };
         if lanes.0.count_ones() > 4 || p.any_zero_component() {
             return None;
         }
@@ -720,14 +721,14 @@ impl<const N: usize> EntryLanes<N> for LaneMask {
         lanes: Self,
         tested: &Option<[u32; 4]>,
         c: usize,
-        (min, max): ([f32; 3], [f32; 3]),
+        boxes: &Boxes<'_, N>,
         seg: (&[f32; N], &[f32; N]),
         _: bool,
     ) -> Option<(Self, u32)> {
         let entered = match tested {
             Some(entered) => entered[c],
             None => {
-                let (t0, t1) = p.slab_within(min, max, seg.0, seg.1);
+                let (t0, t1) = boxes.interval(p, c, seg);
                 unsafe { lanes_le16(as16(&t0), as16(&t1)) & lanes.0 }
             }
         };
@@ -738,6 +739,182 @@ impl<const N: usize> EntryLanes<N> for LaneMask {
             p.count_child(entered.count_ones());
         }
         Some((LaneMask(entered), entered))
+    }
+}
+
+/// A node's child boxes, ready for a packet's box tests.
+enum Boxes<'a, const N: usize> {
+    /// Dequantized: `(min, max)`, each per axis and child.
+    Planes(([[f32; 4]; 3], [[f32; 4]; 3])),
+    /// In the voxel's frame, for a packet whose lanes agree on every
+    /// direction sign ([`FrameRays`]).
+    Frame(FrameNode<'a, N>),
+}
+
+impl<const N: usize> Boxes<'_, N> {
+    /// Per lane, the interval of the ray inside child `c`, limited to
+    /// `seg` and the lane's current hit, widened; empty (`t0 > t1`) where
+    /// the ray misses it.
+    #[inline(always)]
+    fn interval(
+        &self,
+        p: &Packet<N>,
+        c: usize,
+        seg: (&[f32; N], &[f32; N]),
+    ) -> ([f32; N], [f32; N]) {
+        match self {
+            Boxes::Planes((bmin, bmax)) => {
+                let min = [bmin[0][c], bmin[1][c], bmin[2][c]];
+                let max = [bmax[0][c], bmax[1][c], bmax[2][c]];
+                p.slab_within(min, max, seg.0, seg.1)
+            }
+            Boxes::Frame(f) => f.interval(c, seg),
+        }
+    }
+
+    /// The order of a nearest-hit packet's children: where the first ray
+    /// (direction `dir0`) meets the centre of child `c`, up to a constant
+    /// of the voxel.
+    #[inline(always)]
+    fn key(&self, c: usize, dir0: [f32; 3]) -> f32 {
+        match self {
+            Boxes::Planes((min, max)) => {
+                (min[0][c] + max[0][c]) * dir0[0]
+                    + (min[1][c] + max[1][c]) * dir0[1]
+                    + (min[2][c] + max[2][c]) * dir0[2]
+            }
+            Boxes::Frame(f) => {
+                (f.near[0][c] + f.far[0][c]) * f.rays.key[0]
+                    + (f.near[1][c] + f.far[1][c]) * f.rays.key[1]
+                    + (f.near[2][c] + f.far[2][c]) * f.rays.key[2]
+            }
+        }
+    }
+}
+
+/// The box test of a packet whose lanes agree on the sign of every
+/// direction component, in one voxel's fixed-point frame: along axis `a`,
+/// lane `i` meets the plane of quantum `q` at `q * scale[a][i] +
+/// offset`, one multiply and one add per plane instead of dequantizing
+/// the node and a subtract, a multiply and the widening per plane.
+///
+/// `near` and `far` are the offsets lowered and raised by a margin that
+/// bounds the rounding of both this form and of `Frame::plane` (which the
+/// boxes are conservative in), twice `WIDEN` of the largest magnitude in
+/// the sum: never narrower than [`Packet::slab_within`]'s widening, so a
+/// box is culled only where that would cull it too.
+struct FrameRays<const N: usize> {
+    scale: [[f32; N]; 3],
+    near: [[f32; N]; 3],
+    far: [[f32; N]; 3],
+    /// Per axis, whether the near plane is a child's max (lanes going
+    /// towards smaller coordinates).
+    near_is_max: [bool; 3],
+    /// The first ray's direction scaled by the frame (child order).
+    key: [f32; 3],
+}
+
+impl<const N: usize> FrameRays<N> {
+    /// `None` where some axis has lanes of both signs or a zero component.
+    #[inline(always)]
+    fn new(p: &Packet<N>, frame: &Frame) -> Option<FrameRays<N>> {
+        let mut near_is_max = [false; 3];
+        for a in 0..3 {
+            near_is_max[a] = match p.signs[a] {
+                Sign::Positive => false,
+                Sign::Negative => true,
+                Sign::Mixed | Sign::WithZero => return None,
+            };
+        }
+        let mut r = FrameRays {
+            scale: [[0.0; N]; 3],
+            near: [[0.0; N]; 3],
+            far: [[0.0; N]; 3],
+            near_is_max,
+            key: [0.0; 3],
+        };
+        for a in 0..3 {
+            let (origin, scale) = (frame.origin[a], frame.scale[a]);
+            let top = scale * Frame::TOP as f32;
+            for i in 0..N {
+                let inv = p.inv[a][i];
+                let offset = (origin - p.org[a][i]) * inv;
+                let margin = (origin.abs() + p.org[a][i].abs() + top) * inv.abs() * (2.0 * WIDEN);
+                r.scale[a][i] = scale * inv;
+                r.near[a][i] = offset - margin;
+                r.far[a][i] = offset + margin;
+            }
+            r.key[a] = scale * p.dir[a][0];
+        }
+        Some(r)
+    }
+
+    /// The quanta of `node`'s near and far planes, per axis and child,
+    /// and each lane's limit.
+    #[inline(always)]
+    fn node<'a>(
+        &'a self,
+        p: &Packet<N>,
+        node: &WideNode,
+        seg: (&[f32; N], &[f32; N]),
+    ) -> FrameNode<'a, N> {
+        let mut near = [[0.0f32; 4]; 3];
+        let mut far = [[0.0f32; 4]; 3];
+        for a in 0..3 {
+            let (n, f) = if self.near_is_max[a] {
+                (&node.qmax[a], &node.qmin[a])
+            } else {
+                (&node.qmin[a], &node.qmax[a])
+            };
+            for c in 0..4 {
+                near[a][c] = n[c] as f32;
+                far[a][c] = f[c] as f32;
+            }
+        }
+        let mut limit = p.t;
+        for i in 0..N {
+            limit[i] = if seg.1[i] < limit[i] {
+                seg.1[i]
+            } else {
+                limit[i]
+            };
+        }
+        FrameNode {
+            rays: self,
+            near,
+            far,
+            limit,
+        }
+    }
+}
+
+/// One node's boxes for [`FrameRays`].
+struct FrameNode<'a, const N: usize> {
+    rays: &'a FrameRays<N>,
+    /// Quanta of each child's near and far planes, per axis and child.
+    near: [[f32; 4]; 3],
+    far: [[f32; 4]; 3],
+    /// Per lane, the nearer of the lane's segment end and its current hit
+    /// when the node was reached (a hit found since only narrows it).
+    limit: [f32; N],
+}
+
+impl<const N: usize> FrameNode<'_, N> {
+    #[inline(always)]
+    fn interval(&self, c: usize, seg: (&[f32; N], &[f32; N])) -> ([f32; N], [f32; N]) {
+        let r = self.rays;
+        let mut t0 = *seg.0;
+        let mut t1 = self.limit;
+        for a in 0..3 {
+            let (qn, qf) = (self.near[a][c], self.far[a][c]);
+            for i in 0..N {
+                let lo = qn * r.scale[a][i] + r.near[a][i];
+                let hi = qf * r.scale[a][i] + r.far[a][i];
+                t0[i] = if lo > t0[i] { lo } else { t0[i] };
+                t1[i] = if hi < t1[i] { hi } else { t1[i] };
+            }
+        }
+        (t0, t1)
     }
 }
 

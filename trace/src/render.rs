@@ -31,9 +31,12 @@ pub(crate) const SHADOW_EPS: f32 = 1e-4;
 /// The instruction set the kernel runs with.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Isa {
-    /// 16-lane packets (4×4 pixels).
+    /// 16-lane packets (4×4 pixels), 32 (8×4) where rays stay together.
     Avx512,
-    /// 8-lane packets (4×2 pixels).
+    /// The same packets, each lane array in two or four registers: a
+    /// packet's node and triangle loads, its stack and its top-level walk
+    /// are shared by twice the rays of one register's width, which pays
+    /// more than it costs on every view of `scripts/bench-kernel`.
     Avx2,
     /// 8-lane packets in portable code.
     Portable,
@@ -69,10 +72,11 @@ impl Isa {
         }
     }
 
+    /// Rays in a packet that is not wide.
     pub fn lanes(self) -> usize {
         match self {
-            Isa::Avx512 => 16,
-            Isa::Avx2 | Isa::Portable => 8,
+            Isa::Avx512 | Isa::Avx2 => 16,
+            Isa::Portable => 8,
         }
     }
 
@@ -114,12 +118,13 @@ pub struct RenderSettings {
     pub occluder_cache: bool,
 }
 
-/// Rays per packet on AVX-512: 16 (4×4 pixels) or 32 (8×4), and how 16
-/// are traced. Wide packets pay off where the rays of a block stay
+/// Rays per packet on AVX-512 and AVX2: 16 (4×4 pixels) or 32 (8×4), and
+/// how 16 are traced. Wide packets pay off where the rays of a block stay
 /// together (inside the plants), narrow ones where they part (a whole
 /// plant seen from afar), and sparse ones where they part most: a node
 /// that at most four of the 16 lanes enter tests its four children for
-/// them at once (`crate::quad`). Other ISAs always use 8. Measured by
+/// them at once (`crate::quad`, AVX-512 only: AVX2 traces them as
+/// narrow). The portable kernel always uses 8. Measured by
 /// `scripts/bench-kernel`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Packets {
@@ -483,7 +488,15 @@ fn render_tile(
         Isa::Avx512 => unsafe { tile_avx512::<16, 4>(shared, x0, y0, false, scattered) },
         #[cfg(target_arch = "x86_64")]
         // SAFETY: as above.
-        Isa::Avx2 => unsafe { tile_avx2(shared, x0, y0, scattered) },
+        Isa::Avx2 if packets == Packets::Wide => {
+            unsafe { tile_avx2::<32, 8>(shared, x0, y0, scattered) }.map(|mut out| {
+                out.stats.wide_tiles = 1;
+                out
+            })
+        }
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: as above.
+        Isa::Avx2 => unsafe { tile_avx2::<16, 4>(shared, x0, y0, scattered) },
         _ => tile::<8, 4>(shared, x0, y0, false, scattered),
     }
 }
@@ -502,10 +515,17 @@ unsafe fn tile_avx512<const N: usize, const BW: u32>(
     tile::<N, BW>(shared, x0, y0, sparse, scattered)
 }
 
+/// AVX2 at either packet width: 16 lanes (two registers per lane array)
+/// in 4-pixel-wide blocks, or 32 in 8-pixel-wide ones.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
-unsafe fn tile_avx2(shared: &Shared, x0: u32, y0: u32, scattered: bool) -> Result<TileOut, u32> {
-    tile::<8, 4>(shared, x0, y0, false, scattered)
+unsafe fn tile_avx2<const N: usize, const BW: u32>(
+    shared: &Shared,
+    x0: u32,
+    y0: u32,
+    scattered: bool,
+) -> Result<TileOut, u32> {
+    tile::<N, BW>(shared, x0, y0, false, scattered)
 }
 
 /// One tile in packets of N rays from BW-pixel-wide blocks, each run

@@ -184,7 +184,11 @@ pub async fn render_tile_sample(
         #[cfg(target_arch = "x86_64")]
         Isa::Avx512 => drive::<16, 4>(&ctx, loader, rect, mode, step_avx512).await,
         #[cfg(target_arch = "x86_64")]
-        Isa::Avx2 => drive::<8, 4>(&ctx, loader, rect, mode, step_avx2).await,
+        Isa::Avx2 if settings.packets == Packets::Wide => {
+            drive::<32, 8>(&ctx, loader, rect, mode, step_avx2).await
+        }
+        #[cfg(target_arch = "x86_64")]
+        Isa::Avx2 => drive::<16, 4>(&ctx, loader, rect, mode, step_avx2).await,
         _ => drive::<8, 4>(&ctx, loader, rect, mode, step_portable).await,
     }
 }
@@ -229,9 +233,10 @@ fn step_portable(
     start_and_step(j, c, b, s, r, st)
 }
 
+/// AVX2 at either packet width, as AVX-512.
 #[cfg(target_arch = "x86_64")]
-fn step_avx2(
-    j: &mut PacketJob<8, 4>,
+fn step_avx2<const N: usize, const BW: u32>(
+    j: &mut PacketJob<N, BW>,
     c: &Ctx,
     b: Option<(Rect, u32, u32)>,
     s: &dyn VoxelSource,
@@ -239,8 +244,8 @@ fn step_avx2(
     st: &mut FrameStats,
 ) -> Step {
     #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
-    unsafe fn inner(
-        j: &mut PacketJob<8, 4>,
+    unsafe fn inner<const N: usize, const BW: u32>(
+        j: &mut PacketJob<N, BW>,
         c: &Ctx,
         b: Option<(Rect, u32, u32)>,
         s: &dyn VoxelSource,

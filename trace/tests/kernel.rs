@@ -61,27 +61,37 @@ fn check_sample_against_brute_force(
 
 #[test]
 fn packets_of_every_width_equal_brute_force() {
-    // 16 and 32 lanes and sparse 16 where the CPU has AVX-512 (8
-    // elsewhere), and the per-tile choice between them.
+    // 16 and 32 lanes with AVX-512 and AVX2, sparse 16 with AVX-512 (8
+    // lanes in the portable kernel), and the per-tile choice between them,
+    // on every ISA the CPU has.
     let m = plant(20_000);
-    for packets in [
-        Packets::Narrow,
-        Packets::Wide,
-        Packets::Sparse,
-        Packets::Auto,
-    ] {
-        for (k, cam) in cameras(&m, 96, 72).iter().enumerate() {
-            let s = RenderSettings {
-                packets,
-                ..settings(Isa::detect(), &m)
-            };
-            let frame = render(&m.top, &m.source, cam, &s).unwrap();
-            check_against_brute_force(&m, cam, &frame, &format!("{packets:?} camera {k}"));
-            if packets == Packets::Wide && Isa::detect() == Isa::Avx512 {
-                assert!(frame.stats.wide_tiles > 0, "no tile was traced wide");
-            }
-            if packets == Packets::Sparse && Isa::detect() == Isa::Avx512 {
-                assert!(frame.stats.sparse_tiles > 0, "no tile was traced sparse");
+    for isa in isas() {
+        for packets in [
+            Packets::Narrow,
+            Packets::Wide,
+            Packets::Sparse,
+            Packets::Auto,
+        ] {
+            for (k, cam) in cameras(&m, 96, 72).iter().enumerate() {
+                let s = RenderSettings {
+                    packets,
+                    ..settings(isa, &m)
+                };
+                let frame = render(&m.top, &m.source, cam, &s).unwrap();
+                let what = format!("{isa:?} {packets:?} camera {k}");
+                check_against_brute_force(&m, cam, &frame, &what);
+                if packets == Packets::Wide && isa != Isa::Portable {
+                    assert!(
+                        frame.stats.wide_tiles > 0,
+                        "{what}: no tile was traced wide"
+                    );
+                }
+                if packets == Packets::Sparse && isa == Isa::Avx512 {
+                    assert!(
+                        frame.stats.sparse_tiles > 0,
+                        "{what}: no tile was traced sparse"
+                    );
+                }
             }
         }
     }
@@ -99,14 +109,18 @@ fn plant_pixels_equal_brute_force_on_every_isa() {
 }
 
 /// Jittered samples move every ray of the frame and still equal brute
-/// force through the moved rays, on every ISA and, with AVX-512, every
-/// packet width.
+/// force through the moved rays, on every ISA and every packet width.
 #[test]
 fn jittered_samples_equal_brute_force_on_every_isa() {
     let m = plant(20_000);
     let mut runs: Vec<(Isa, Packets)> = isas().into_iter().map(|i| (i, Packets::Auto)).collect();
+    for isa in isas() {
+        if isa != Isa::Portable {
+            runs.push((isa, Packets::Wide));
+        }
+    }
     if Isa::detect() == Isa::Avx512 {
-        runs.extend([(Isa::Avx512, Packets::Wide), (Isa::Avx512, Packets::Sparse)]);
+        runs.push((Isa::Avx512, Packets::Sparse));
     }
     for (isa, packets) in runs {
         let s = RenderSettings {

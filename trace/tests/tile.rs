@@ -432,29 +432,42 @@ async fn tiny_cache_random_arrivals_give_identical_tiles() {
 
 /// Tiles of 32-lane packets and of sparse 16-lane ones, with voxels
 /// arriving in random order, give the pixels of 16-lane packets (shaded,
-/// shadows, reflections), and so do frames of sparse packets.
+/// shadows, reflections), and so do frames of sparse packets, with AVX-512
+/// and AVX2 alike.
 #[tokio::test(start_paused = true)]
 async fn wide_and_sparse_packet_tiles_equal_the_narrow_frame() {
     let m = plant(20_000);
+    for isa in isas().into_iter().filter(|&i| i != Isa::Portable) {
+        wide_and_sparse_tiles(&m, isa).await;
+    }
+}
+
+async fn wide_and_sparse_tiles(m: &Model, isa: Isa) {
     let narrow = RenderSettings {
         packets: Packets::Narrow,
-        ..shaded(Isa::detect(), &m)
+        ..shaded(isa, m)
     };
     for packets in [Packets::Wide, Packets::Sparse] {
         let other = RenderSettings {
             packets,
             ..narrow.clone()
         };
-        for (k, cam) in cameras(&m, 64, 48).iter().enumerate() {
-            let frame = reference(&m, cam, &narrow);
-            let whole = reference(&m, cam, &other);
-            assert_eq!(frame.rgba, whole.rgba, "camera {k} {packets:?} frame");
-            assert_eq!(frame.primid, whole.primid, "camera {k} {packets:?} frame");
+        for (k, cam) in cameras(m, 64, 48).iter().enumerate() {
+            let frame = reference(m, cam, &narrow);
+            let whole = reference(m, cam, &other);
+            assert_eq!(
+                frame.rgba, whole.rgba,
+                "{isa:?} camera {k} {packets:?} frame"
+            );
+            assert_eq!(
+                frame.primid, whole.primid,
+                "{isa:?} camera {k} {packets:?} frame"
+            );
             for (g, rects) in rect_grids(cam) {
                 let loader = TinyCache::new(&m.source, 3, 7 + k as u64);
-                let what = format!("camera {k} {packets:?} tiles {g}");
+                let what = format!("{isa:?} camera {k} {packets:?} tiles {g}");
                 check_rects(
-                    &m,
+                    m,
                     &loader,
                     cam,
                     &other,
