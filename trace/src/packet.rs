@@ -36,6 +36,11 @@ use glam::Vec3;
 /// Relative widening of every culling interval: slab tests round, and a
 /// box or cell must never be culled because of it.
 const WIDEN: f32 = 1.0 / 65536.0;
+/// The margin of [`FrameRays`]' intervals, relative to the largest
+/// magnitude in their sums: 16 units in the last place, where the
+/// rounding of the planes, of the box test and of the triangle test's
+/// distances adds up to at most a few.
+const MARGIN: f32 = 1.0 / 1_048_576.0;
 /// Stand-in for a zero direction component in the reciprocal (never in the
 /// triangle test), so that no NaN reaches the interval arithmetic. Slab
 /// tests do not use it for such a lane: a ray exactly in the plane of a
@@ -798,11 +803,16 @@ impl<const N: usize> Boxes<'_, N> {
 /// offset`, one multiply and one add per plane instead of dequantizing
 /// the node and a subtract, a multiply and the widening per plane.
 ///
-/// `near` and `far` are the offsets lowered and raised by a margin that
-/// bounds the rounding of both this form and of `Frame::plane` (which the
-/// boxes are conservative in), twice `WIDEN` of the largest magnitude in
-/// the sum: never narrower than [`Packet::slab_within`]'s widening, so a
-/// box is culled only where that would cull it too.
+/// `near` and `far` are the offsets lowered and raised by [`MARGIN`] of
+/// the largest magnitude in the sum (the voxel's origin, the ray's origin
+/// and the frame's extent, over the direction): it bounds the rounding of
+/// this form, of `Frame::plane` (which the boxes are conservative in) and
+/// of the triangle test's distances, so a box is culled only where the
+/// ray misses it. Unlike [`Packet::slab_within`]'s widening it does not
+/// grow with the distance, which culls more boxes far from the eye.
+///
+/// The top level's boxes are tested the same way in world coordinates
+/// ([`FrameRays::world`]), once per packet.
 struct FrameRays<const N: usize> {
     scale: [[f32; N]; 3],
     near: [[f32; N]; 3],
@@ -815,9 +825,30 @@ struct FrameRays<const N: usize> {
 }
 
 impl<const N: usize> FrameRays<N> {
-    /// `None` where some axis has lanes of both signs or a zero component.
+    /// For the boxes of a voxel's nodes, in its frame; `None` where some
+    /// axis has lanes of both signs or a zero component.
     #[inline(always)]
     fn new(p: &Packet<N>, frame: &Frame) -> Option<FrameRays<N>> {
+        let top = frame.scale.map(|s| s * Frame::TOP as f32);
+        Self::with(p, frame.origin, frame.scale, top)
+    }
+
+    /// For boxes in world coordinates, every coordinate at most `extent`
+    /// in magnitude, per axis.
+    #[inline(always)]
+    fn world(p: &Packet<N>, extent: [f32; 3]) -> Option<FrameRays<N>> {
+        Self::with(p, [0.0; 3], [1.0; 3], extent)
+    }
+
+    /// Planes `origin + q * scale`, with `q * scale` at most `extent` in
+    /// magnitude.
+    #[inline(always)]
+    fn with(
+        p: &Packet<N>,
+        origin: [f32; 3],
+        scale: [f32; 3],
+        extent: [f32; 3],
+    ) -> Option<FrameRays<N>> {
         let mut near_is_max = [false; 3];
         for a in 0..3 {
             near_is_max[a] = match p.signs[a] {
@@ -834,12 +865,11 @@ impl<const N: usize> FrameRays<N> {
             key: [0.0; 3],
         };
         for a in 0..3 {
-            let (origin, scale) = (frame.origin[a], frame.scale[a]);
-            let top = scale * Frame::TOP as f32;
+            let (origin, scale, top) = (origin[a], scale[a], extent[a]);
             for i in 0..N {
                 let inv = p.inv[a][i];
                 let offset = (origin - p.org[a][i]) * inv;
-                let margin = (origin.abs() + p.org[a][i].abs() + top) * inv.abs() * (2.0 * WIDEN);
+                let margin = (origin.abs() + p.org[a][i].abs() + top) * inv.abs() * MARGIN;
                 r.scale[a][i] = scale * inv;
                 r.near[a][i] = offset - margin;
                 r.far[a][i] = offset + margin;
@@ -847,6 +877,29 @@ impl<const N: usize> FrameRays<N> {
             r.key[a] = scale * p.dir[a][0];
         }
         Some(r)
+    }
+
+    /// Per lane, the interval of the ray inside the box `min`..`max` (in
+    /// the planes' own units) before its current hit, widened; empty
+    /// (`t0 > t1`) where the ray misses it.
+    #[inline(always)]
+    fn interval(&self, p: &Packet<N>, min: [f32; 3], max: [f32; 3]) -> ([f32; N], [f32; N]) {
+        let mut t0 = [p.tmin; N];
+        let mut t1 = p.t;
+        for a in 0..3 {
+            let (qn, qf) = if self.near_is_max[a] {
+                (max[a], min[a])
+            } else {
+                (min[a], max[a])
+            };
+            for i in 0..N {
+                let lo = qn * self.scale[a][i] + self.near[a][i];
+                let hi = qf * self.scale[a][i] + self.far[a][i];
+                t0[i] = if lo > t0[i] { lo } else { t0[i] };
+                t1[i] = if hi < t1[i] { hi } else { t1[i] };
+            }
+        }
+        (t0, t1)
     }
 
     /// The quanta of `node`'s near and far planes, per axis and child,
@@ -1325,6 +1378,17 @@ impl<const N: usize> Traversal<N> {
         source: &dyn VoxelSource,
     ) -> Step {
         let shear = AnyShear::new(packet);
+        // The top level's boxes tested as a voxel's are, in world
+        // coordinates, where the packet's lanes agree on every sign.
+        let root = &top.boxes[0];
+        let world = if root.is_empty() {
+            None
+        } else {
+            FrameRays::world(
+                packet,
+                [0, 1, 2].map(|a| root.min[a].abs().max(root.max[a].abs())),
+            )
+        };
         if !self.started {
             self.started = true;
             self.stack.push(0);
@@ -1336,7 +1400,10 @@ impl<const N: usize> Traversal<N> {
             if b.is_empty() {
                 continue;
             }
-            let (t0, t1) = packet.slab(b.min, b.max);
+            let (t0, t1) = match &world {
+                Some(w) => w.interval(packet, b.min, b.max),
+                None => packet.slab(b.min, b.max),
+            };
             let mut live = false;
             for i in 0..N {
                 live |= t0[i] <= t1[i];
