@@ -428,6 +428,8 @@ impl<const N: usize> Packet<N> {
         // and load would sit on the path from one node load to the next.
         let mut next = (0u32, L::root(self, seg));
         let dir0 = [self.dir[0][0], self.dir[1][0], self.dir[2][0]];
+        // 32-lane packets keep the slab test: their frame set-up and its
+        // registers cost more than they save (`docs/benchmarks.md`).
         let frame = if L::KEEPS_LANES || N > 16 {
             None
         } else {
@@ -884,22 +886,30 @@ impl<const N: usize> FrameRays<N> {
     /// (`t0 > t1`) where the ray misses it.
     #[inline(always)]
     fn interval(&self, p: &Packet<N>, min: [f32; 3], max: [f32; 3]) -> ([f32; N], [f32; N]) {
-        let mut t0 = [p.tmin; N];
-        let mut t1 = p.t;
+        let (mut t0, mut t1) = ([p.tmin; N], p.t);
+        let mut near = min;
+        let mut far = max;
         for a in 0..3 {
-            let (qn, qf) = if self.near_is_max[a] {
-                (max[a], min[a])
-            } else {
-                (min[a], max[a])
-            };
+            if self.near_is_max[a] {
+                (near[a], far[a]) = (max[a], min[a]);
+            }
+        }
+        self.clip(near, far, &mut t0, &mut t1);
+        (t0, t1)
+    }
+
+    /// Narrows each lane's `t0`..`t1` to where it is between the `near`
+    /// and `far` planes of every axis (quanta, or world coordinates).
+    #[inline(always)]
+    fn clip(&self, near: [f32; 3], far: [f32; 3], t0: &mut [f32; N], t1: &mut [f32; N]) {
+        for a in 0..3 {
             for i in 0..N {
-                let lo = qn * self.scale[a][i] + self.near[a][i];
-                let hi = qf * self.scale[a][i] + self.far[a][i];
+                let lo = near[a] * self.scale[a][i] + self.near[a][i];
+                let hi = far[a] * self.scale[a][i] + self.far[a][i];
                 t0[i] = if lo > t0[i] { lo } else { t0[i] };
                 t1[i] = if hi < t1[i] { hi } else { t1[i] };
             }
         }
-        (t0, t1)
     }
 
     /// The quanta of `node`'s near and far planes, per axis and child,
@@ -955,18 +965,10 @@ struct FrameNode<'a, const N: usize> {
 impl<const N: usize> FrameNode<'_, N> {
     #[inline(always)]
     fn interval(&self, c: usize, seg: (&[f32; N], &[f32; N])) -> ([f32; N], [f32; N]) {
-        let r = self.rays;
-        let mut t0 = *seg.0;
-        let mut t1 = self.limit;
-        for a in 0..3 {
-            let (qn, qf) = (self.near[a][c], self.far[a][c]);
-            for i in 0..N {
-                let lo = qn * r.scale[a][i] + r.near[a][i];
-                let hi = qf * r.scale[a][i] + r.far[a][i];
-                t0[i] = if lo > t0[i] { lo } else { t0[i] };
-                t1[i] = if hi < t1[i] { hi } else { t1[i] };
-            }
-        }
+        let (mut t0, mut t1) = (*seg.0, self.limit);
+        let near = [0, 1, 2].map(|a| self.near[a][c]);
+        let far = [0, 1, 2].map(|a| self.far[a][c]);
+        self.rays.clip(near, far, &mut t0, &mut t1);
         (t0, t1)
     }
 }
