@@ -334,7 +334,11 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 let kernel = isa.unwrap_or_else(dray_trace::render::Isa::detect);
                 let clients = clients.unwrap_or(cfg.clients.count);
                 let (model, calibration) = match cost {
-                    Some(file) => (read_cost_model(&file)?, None),
+                    Some(file) => (
+                        dray_actors::costs::CostModel::read(&file)
+                            .map_err(|e| anyhow::anyhow!("--cost {e}"))?,
+                        None,
+                    ),
                     None => {
                         let cal = dray_actors::costs::measure(
                             &cfg,
@@ -462,24 +466,6 @@ fn runtime() -> Result<tokio::runtime::Runtime> {
         .enable_all()
         .build()
         .context("starting the async runtime")
-}
-
-/// A cost model from `file`: a virtual run's `calibration.json` (its
-/// `model`) or the model's keys alone.
-fn read_cost_model(file: &std::path::Path) -> Result<dray_actors::costs::CostModel> {
-    let text =
-        std::fs::read_to_string(file).with_context(|| format!("--cost {}", file.display()))?;
-    let mut v: serde_json::Value = serde_json::from_str(&text)
-        .with_context(|| format!("--cost {}: not JSON", file.display()))?;
-    if let Some(model) = v.get_mut("model") {
-        v = model.take();
-    }
-    let model: dray_actors::costs::CostModel = serde_json::from_value(v)
-        .with_context(|| format!("--cost {}: not a cost model", file.display()))?;
-    model
-        .validate(&format!("--cost {}", file.display()))
-        .map_err(anyhow::Error::msg)?;
-    Ok(model)
 }
 
 /// Prints a run's summary: the display's text (or JSON) and what happened.

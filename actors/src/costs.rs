@@ -89,6 +89,23 @@ pub struct CostModel {
 }
 
 impl CostModel {
+    /// The model in `file`: a virtual run's `calibration.json` (its
+    /// `model`, as the experiment engine writes it) or the model's keys
+    /// alone, as JSON; checked by [`Self::validate`]. Errors name `file`.
+    pub fn read(file: &Path) -> Result<CostModel, String> {
+        let at = file.display();
+        let text = std::fs::read_to_string(file).map_err(|e| format!("{at}: {e}"))?;
+        let mut v: serde_json::Value =
+            serde_json::from_str(&text).map_err(|e| format!("{at}: not JSON: {e}"))?;
+        if let Some(model) = v.get_mut("model") {
+            v = model.take();
+        }
+        let model: CostModel =
+            serde_json::from_value(v).map_err(|e| format!("{at}: not a cost model: {e}"))?;
+        model.validate(&at.to_string())?;
+        Ok(model)
+    }
+
     /// For a client that traces `speed` times and decodes `decode_speed`
     /// times as fast (the host's other actors go at `speed`).
     pub fn scaled(self, speed: f64, decode_speed: f64) -> CostModel {
@@ -567,6 +584,44 @@ fn solve(mut a: Vec<Vec<f64>>) -> Option<Vec<f64>> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_cost_model_is_read_from_a_calibration_or_alone_and_a_bad_one_is_named() {
+        let dir = tempfile::tempdir().unwrap();
+        let model = CostModel {
+            ns_per_tile: 1000.0,
+            ns_per_primary_ray: 20.0,
+            ns_per_secondary_ray: 15.0,
+            ns_per_voxel_visit: 900.0,
+            ns_per_decoded_byte: 1.5,
+            ns_per_pixel_host: 0.0,
+        };
+        let alone = dir.path().join("model.json");
+        std::fs::write(&alone, serde_json::to_string(&model).unwrap()).unwrap();
+        assert_eq!(CostModel::read(&alone), Ok(model));
+        let calibration = dir.path().join("calibration.json");
+        let record = serde_json::json!({ "model": model, "host_cores": null, "speed": 1.0 });
+        std::fs::write(&calibration, record.to_string()).unwrap();
+        assert_eq!(CostModel::read(&calibration), Ok(model));
+        let bad = dir.path().join("bad.json");
+        std::fs::write(&bad, r#"{ "model": { "ns_per_tile": 1 } }"#).unwrap();
+        let e = CostModel::read(&bad).unwrap_err();
+        assert!(
+            e.contains("bad.json") && e.contains("ns_per_primary_ray"),
+            "{e}"
+        );
+        let negative = dir.path().join("negative.json");
+        let model = CostModel {
+            ns_per_tile: -1.0,
+            ..model
+        };
+        std::fs::write(&negative, serde_json::to_string(&model).unwrap()).unwrap();
+        let e = CostModel::read(&negative).unwrap_err();
+        assert!(
+            e.contains("negative.json") && e.contains("ns_per_tile"),
+            "{e}"
+        );
+    }
 
     #[test]
     fn the_fit_recovers_known_costs_and_drops_a_column_that_never_varies() {
