@@ -43,9 +43,9 @@ pub(crate) struct Ctx<'a> {
     /// set only where the kernel runs its AVX-512 code and the CPU has
     /// AVX-512F and BMI2 (the callers clear it for other packets).
     pub quad: bool,
-    /// Whether 16-lane shadow packets hand sparse subtrees over to groups
-    /// of lanes ([`Packet::hand_off_sparse_subtrees`]): where the kernel
-    /// runs its AVX-512 code (`render` clears it for tiles whose rays stay
+    /// Whether shadow packets hand sparse subtrees over to groups of lanes
+    /// ([`Packet::hand_off_sparse_subtrees`]): where the kernel runs its
+    /// AVX-512 or AVX2 code (`render` clears it for tiles whose rays stay
     /// together, [`crate::render::PacketChooser::scattered`]).
     pub groups: bool,
     /// Whether the tile's rays part ways, so that their hits lie far
@@ -72,7 +72,7 @@ impl<'a> Ctx<'a> {
             eps: SHADOW_EPS * settings.scene_diagonal,
             grey,
             quad: settings.isa == Isa::Avx512 && crate::quad::available(),
-            groups: settings.isa == Isa::Avx512,
+            groups: settings.isa != Isa::Portable,
             scattered: true,
         }
     }
@@ -286,7 +286,7 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
                         self.packet.any_hit = true;
                         self.packet.quad = ctx.quad;
                         if ctx.groups {
-                            self.packet.hand_off_sparse_subtrees();
+                            self.packet.hand_off_sparse_subtrees(ctx.settings.isa);
                         }
                         self.try_occluder = ctx.settings.occluder_cache;
                         for i in 0..N {

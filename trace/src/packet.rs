@@ -28,9 +28,12 @@
 
 #[cfg(target_arch = "x86_64")]
 mod group;
+#[cfg(target_arch = "x86_64")]
+mod group_avx2;
 
 use crate::accel::{prefetch, Frame, PreparedVoxel, TopLevel, TopNode, VoxelSource, WideNode};
 use crate::quad;
+use crate::render::Isa;
 use glam::Vec3;
 
 /// Relative widening of every culling interval: slab tests round, and a
@@ -103,14 +106,28 @@ pub struct Packet<const N: usize> {
     /// set only where the CPU has AVX-512F and BMI2, and used only with 16
     /// lanes.
     pub(crate) quad: bool,
-    /// Whether a shadow packet hands the subtrees of a voxel's BVH that at
-    /// most four of its lanes enter over to those lanes as a group
-    /// (`group`; [`Packet::hand_off_sparse_subtrees`]): set only with 16
-    /// lanes where the CPU has AVX-512F and BMI2.
-    pub(crate) groups: bool,
+    /// Whether a shadow packet hands the subtrees of a voxel's BVH that
+    /// few of its lanes enter over to those lanes, and how
+    /// ([`Packet::hand_off_sparse_subtrees`]).
+    pub(crate) groups: Groups,
     /// Subtrees handed over so far (the tests check that hand-overs
     /// happen).
     pub group_searches: u32,
+}
+
+/// How a shadow packet's sparse subtrees are searched: by the whole packet,
+/// or handed over to the few lanes that enter them.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Groups {
+    Off,
+    /// Up to four lanes at a time in one AVX-512 vector (`group`): 16-lane
+    /// packets where the CPU has AVX-512F and BMI2.
+    Avx512,
+    /// Up to four lanes at a time in two AVX2 vectors (`group_avx2`):
+    /// packets of up to 16 lanes where the CPU has AVX2, in voxels where
+    /// their lanes agree on every direction sign (the box test in the
+    /// voxel's frame, [`FrameRays`]).
+    Avx2,
 }
 
 /// A triangle that blocked a shadow ray: its corners and ORIGINAL id
@@ -170,30 +187,37 @@ impl<const N: usize> Packet<N> {
             child_hits: 0,
             child_lanes: 0,
             quad: false,
-            groups: false,
+            groups: Groups::Off,
             group_searches: 0,
         }
     }
 
     /// Lets a shadow packet (`any_hit`, `tmin` not negative, every lane
     /// with the same axis order in the triangle test, as a distant light's
-    /// rays have) search each subtree of a voxel's BVH that at most four
-    /// of its lanes enter with those lanes alone, four at a time in one
-    /// vector (`group`), where it has 16 lanes and the CPU has AVX-512F and
-    /// BMI2; whether it will. Other packets ignore it. The answers are the
-    /// same either way.
+    /// rays have) search each subtree of a voxel's BVH that few of its
+    /// lanes enter (at most four) with those lanes alone, in the code of
+    /// `isa`; whether it will. With AVX-512, in one vector (`group`), where
+    /// the packet has 16 lanes and the CPU has AVX-512F and BMI2. With
+    /// AVX2, in one vector for two lanes or two for four (`group_avx2`),
+    /// where the packet has up to 16 lanes and the CPU has AVX2, in the
+    /// voxels where its lanes agree on every direction sign. Other packets
+    /// ignore it. The answers are the same either way.
     ///
     /// Far from the model a shadow packet's lanes part ways inside each
     /// voxel, and a node visit of the whole packet costs the same for 3
-    /// lanes as for 16. Handed over, a node costs a group one 16-lane box
-    /// test with no per-node gathering, and a leaf one triangle test for
-    /// all its triangles. Where the lanes stay together, the lane masks of
+    /// lanes as for 16. Handed over, a node costs a group one vector's box
+    /// test for all four children, and a leaf one triangle test for all
+    /// its triangles. Where the lanes stay together, the lane masks of
     /// every entered child and the groups at the fringes cost more than
     /// they save: `render` turns hand-overs off for such tiles (measured
     /// by `scripts/bench-kernel`).
-    pub fn hand_off_sparse_subtrees(&mut self) -> bool {
-        self.groups = N == 16 && quad::available();
-        self.groups
+    pub fn hand_off_sparse_subtrees(&mut self, isa: Isa) -> bool {
+        self.groups = match isa {
+            Isa::Avx512 if N == 16 && quad::available() => Groups::Avx512,
+            Isa::Avx2 if N <= 16 && avx2_groups_available() => Groups::Avx2,
+            _ => Groups::Off,
+        };
+        self.groups != Groups::Off
     }
 
     /// Whether some lane's direction has a component exactly zero: the
@@ -387,33 +411,44 @@ impl<const N: usize> Packet<N> {
         if vox.nodes.is_empty() {
             return;
         }
-        if N == 16 && self.groups {
-            // SAFETY: `groups` is set only where the CPU has AVX-512F.
-            let lanes = unsafe { lanes_le16(as16(seg.0), as16(seg.1)) };
-            if self.hand_off(shear, vox, seg, lanes, 0) {
+        // Sparse packets (16 lanes, AVX-512 and BMI2) keep each entry's
+        // lanes and test boxes as planes, which `crate::quad` reads.
+        // 32-lane packets keep the slab test too: their frame set-up and
+        // its registers cost more than they save (`docs/benchmarks.md`).
+        let sparse = N == 16 && self.quad;
+        let frame = if sparse || N > 16 {
+            None
+        } else {
+            FrameRays::new(self, &vox.frame)
+        };
+        let frame = frame.as_ref();
+        let groups = self.groups != Groups::Off;
+        if groups {
+            let lanes = entering(self, seg.0, seg.1);
+            if self.hand_off(shear, frame, vox, seg, lanes, 0) {
                 return;
             }
         }
-        // Sparse packets (16 lanes, AVX-512 and BMI2) keep each entry's
-        // lanes; the others search without them, in code of their own, as
-        // keeping the lanes slows every other packet down. Shadow packets
-        // that hand subtrees over have code of their own too, so that the
-        // hand-over's tests cost the other packets nothing
-        // (`scripts/bench-kernel`).
-        match (N == 16 && self.quad, self.groups) {
-            (true, true) => self.search::<S, LaneMask, true>(shear, vox, seg),
-            (true, false) => self.search::<S, LaneMask, false>(shear, vox, seg),
-            (false, true) => self.search::<S, AllLanes, true>(shear, vox, seg),
-            (false, false) => self.search::<S, AllLanes, false>(shear, vox, seg),
+        // The searches that keep lanes, and those that hand subtrees over,
+        // are code of their own, as keeping the lanes slows every other
+        // packet down, and the hand-over's tests would cost the other
+        // packets too (`scripts/bench-kernel`).
+        match (sparse, groups) {
+            (true, true) => self.search::<S, LaneMask, true>(shear, frame, vox, seg),
+            (true, false) => self.search::<S, LaneMask, false>(shear, frame, vox, seg),
+            (false, true) => self.search::<S, AllLanes, true>(shear, frame, vox, seg),
+            (false, false) => self.search::<S, AllLanes, false>(shear, frame, vox, seg),
         }
     }
 
     /// The search of one voxel's BVH, with `L` the lanes each stack entry
-    /// stands for.
+    /// stands for, and its boxes tested in the voxel's `frame` where there
+    /// is one.
     #[inline(always)]
     fn search<S: TriangleTest<N>, L: EntryLanes<N>, const HAND_OFF: bool>(
         &mut self,
         shear: &S,
+        frame: Option<&FrameRays<N>>,
         vox: &PreparedVoxel,
         seg: (&[f32; N], &[f32; N]),
     ) {
@@ -428,13 +463,6 @@ impl<const N: usize> Packet<N> {
         // and load would sit on the path from one node load to the next.
         let mut next = (0u32, L::root(self, seg));
         let dir0 = [self.dir[0][0], self.dir[1][0], self.dir[2][0]];
-        // 32-lane packets keep the slab test: their frame set-up and its
-        // registers cost more than they save (`docs/benchmarks.md`).
-        let frame = if L::KEEPS_LANES || N > 16 {
-            None
-        } else {
-            FrameRays::new(self, &vox.frame)
-        };
         loop {
             let (entry, lanes) = if next.0 != NONE {
                 next
@@ -454,7 +482,7 @@ impl<const N: usize> Packet<N> {
             }
             let node = &vox.nodes[entry as usize];
             prefetch_children::<N>(vox, node);
-            let boxes = match &frame {
+            let boxes = match frame {
                 Some(f) => Boxes::Frame(f.node(self, node, seg)),
                 None => Boxes::Planes(dequantize(vox, node)),
             };
@@ -472,7 +500,7 @@ impl<const N: usize> Packet<N> {
                 else {
                     continue;
                 };
-                if HAND_OFF && self.hand_off(shear, vox, seg, mask, node.child[c]) {
+                if HAND_OFF && self.hand_off(shear, frame, vox, seg, mask, node.child[c]) {
                     if self.all_blocked() {
                         return;
                     }
@@ -502,35 +530,48 @@ impl<const N: usize> Packet<N> {
     }
 
     /// Where this is a shadow packet that hands sparse subtrees over to
-    /// groups of lanes (`groups`) and at most four lanes (`lanes`, a bit
+    /// groups of lanes (`groups`) and few enough lanes (`lanes`, a bit
     /// each) enter `root` (a child slot of a node, 0 for the voxel's root):
-    /// searches it for them four at a time ([`group::subtree`]); whether it
+    /// searches it for them ([`group::subtree`], or
+    /// [`group_avx2::subtree`] with the box test of `frame`); whether it
     /// did.
     #[inline(always)]
     fn hand_off<S: TriangleTest<N>>(
         &mut self,
         shear: &S,
+        frame: Option<&FrameRays<N>>,
         vox: &PreparedVoxel,
         seg: (&[f32; N], &[f32; N]),
         lanes: u32,
         root: u32,
     ) -> bool {
         #[cfg(target_arch = "x86_64")]
-        if N == 16 && self.groups && self.any_hit && lanes.count_ones() <= 4 && self.tmin >= 0.0 {
-            if let Some(shear) = shear.uniform() {
-                // SAFETY: `groups` is set only where the CPU has AVX-512F
-                // and BMI2; N is 16, so the types are the same.
-                unsafe {
-                    let p = &mut *(self as *mut Packet<N> as *mut Packet<16>);
-                    let shear = &*(shear as *const Shear<N> as *const Shear<16>);
-                    group::subtree(p, shear, vox, (as16(seg.0), as16(seg.1)), lanes, root);
+        if let (true, Some(shear)) = (
+            self.any_hit && (1..=4).contains(&lanes.count_ones()),
+            shear.uniform(),
+        ) {
+            match self.groups {
+                Groups::Avx512 if N == 16 && self.tmin >= 0.0 => {
+                    // SAFETY: `Groups::Avx512` only where the CPU has AVX-512F and
+                    // BMI2; N is 16, so the types are the same.
+                    unsafe {
+                        let p = &mut *(self as *mut Packet<N> as *mut Packet<16>);
+                        let shear = &*(shear as *const Shear<N> as *const Shear<16>);
+                        group::subtree(p, shear, vox, (as16(seg.0), as16(seg.1)), lanes, root);
+                    }
                 }
-                self.group_searches = self.group_searches.wrapping_add(1);
-                return true;
+                Groups::Avx2 if frame.is_some() => {
+                    let frame = frame.expect("just checked");
+                    // SAFETY: `Groups::Avx2` only where the CPU has AVX2.
+                    unsafe { group_avx2::subtree(self, shear, frame, vox, seg, lanes, root) };
+                }
+                _ => return false,
             }
+            self.group_searches = self.group_searches.wrapping_add(1);
+            return true;
         }
         // (Off x86_64 nothing is handed over and the arguments go unused.)
-        let _ = (shear, vox, seg, lanes, root);
+        let _ = (shear, frame, vox, seg, lanes, root);
         false
     }
 
@@ -593,9 +634,6 @@ impl<const N: usize> Packet<N> {
 trait EntryLanes<const N: usize>: Copy {
     /// What a node works out before its children are tested one by one.
     type Tested;
-    /// Whether entries keep their own lanes: such searches test boxes as
-    /// planes ([`Boxes::Planes`]), which `crate::quad` reads.
-    const KEEPS_LANES: bool;
     /// The lanes of the voxel's root: those whose interval `seg` is not
     /// empty.
     fn root(p: &Packet<N>, seg: (&[f32; N], &[f32; N])) -> Self;
@@ -629,7 +667,6 @@ struct AllLanes;
 
 impl<const N: usize> EntryLanes<N> for AllLanes {
     type Tested = ();
-    const KEEPS_LANES: bool = false;
 
     #[inline(always)]
     fn root(_: &Packet<N>, _: (&[f32; N], &[f32; N])) -> Self {
@@ -650,11 +687,9 @@ impl<const N: usize> EntryLanes<N> for AllLanes {
         masks: bool,
     ) -> Option<(Self, u32)> {
         let (t0, t1) = boxes.interval(p, c, seg);
-        if N == 16 && masks {
-            // Shadow packets, which never count their lanes. SAFETY:
-            // `masks` only for packets with `groups`, set only where the
-            // CPU has AVX-512F.
-            let mask = unsafe { lanes_le16(as16(&t0), as16(&t1)) };
+        if masks {
+            // Shadow packets, which never count their lanes.
+            let mask = entering(p, &t0, &t1);
             return (mask != 0).then_some((AllLanes, mask));
         }
         let mut any = false;
@@ -687,7 +722,6 @@ struct LaneMask(u32);
 impl<const N: usize> EntryLanes<N> for LaneMask {
     /// The lanes entering each child where at most four entered the node.
     type Tested = Option<[u32; 4]>;
-    const KEEPS_LANES: bool = true;
 
     #[inline(always)]
     fn root(_: &Packet<N>, seg: (&[f32; N], &[f32; N])) -> Self {
@@ -1058,6 +1092,26 @@ fn sort_far_first<T: Copy>(hits: &mut [(f32, T)]) {
         }
         hits[k] = x;
     }
+}
+
+/// Whether this CPU has what `group_avx2` needs.
+fn avx2_groups_available() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    return is_x86_feature_detected!("avx2");
+    #[cfg(not(target_arch = "x86_64"))]
+    return false;
+}
+
+/// The lanes where `t0 <= t1`, a bit each (up to 32 lanes): the AVX-512
+/// intrinsic where the packet's groups run on AVX-512, else a lane loop
+/// (which LLVM turns into comparisons and a mask move).
+#[inline(always)]
+fn entering<const N: usize>(p: &Packet<N>, t0: &[f32; N], t1: &[f32; N]) -> u32 {
+    if N == 16 && p.groups == Groups::Avx512 {
+        // SAFETY: `Groups::Avx512` only where the CPU has AVX-512F.
+        return unsafe { lanes_le16(as16(t0), as16(t1)) };
+    }
+    (0..N).fold(0, |m, i| m | (((t0[i] <= t1[i]) as u32) << i))
 }
 
 /// [`quad::lanes_le`] where it exists (elsewhere `quad` is never set).
