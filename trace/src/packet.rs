@@ -413,10 +413,12 @@ impl<const N: usize> Packet<N> {
         }
         // Sparse packets (16 lanes, AVX-512 and BMI2) keep each entry's
         // lanes and test boxes as planes, which `crate::quad` reads.
-        // 32-lane packets keep the slab test too: their frame set-up and
-        // its registers cost more than they save (`docs/benchmarks.md`).
+        // 32-lane nearest-hit packets keep the slab test too: their frame
+        // set-up and its registers cost more than they save; 32-lane
+        // shadow packets, whose lanes part more, gain from the frame
+        // (`docs/benchmarks.md`).
         let sparse = N == 16 && self.quad;
-        let frame = if sparse || N > 16 {
+        let frame = if sparse || (N > 16 && !self.any_hit) {
             None
         } else {
             FrameRays::new(self, &vox.frame)

@@ -333,11 +333,11 @@ fn random_vertex(m: &Model, rng: &mut Rng) -> Vec3 {
 /// model) hand their sparse subtrees over to groups of up to four lanes
 /// with AVX-512 and with AVX2, where the CPU has them
 /// ([`Packet::hand_off_sparse_subtrees`]): every lane still agrees with
-/// brute force, and with the same packet traced without groups. Two
-/// packets in three aim their lanes at vertices of the model, so that
-/// lanes pass next to shared corners; half of those along a light whose
-/// components are powers of two, which meets a vertex exactly where the
-/// origin's subtraction is exact.
+/// brute force, as does the same packet traced without groups, alone and
+/// twice over in a 32-lane packet. Two packets in three aim their lanes at
+/// vertices of the model, so that lanes pass next to shared corners; half
+/// of those along a light whose components are powers of two, which meets
+/// a vertex exactly where the origin's subtraction is exact.
 #[test]
 fn shadow_packets_in_groups_equal_brute_force() {
     for isa in isas().into_iter().filter(|&i| i != Isa::Portable) {
@@ -377,6 +377,8 @@ fn shadow_packets_in_groups(isa: Isa) {
         }
         let grouped = traced_shadow_packet(&m, &origins, light, tmin, Some(isa));
         let plain = traced_shadow_packet(&m, &origins, light, tmin, None);
+        let twice: [Vec3; 32] = std::array::from_fn(|i| origins[i % 16]);
+        let wide = traced_shadow_packet(&m, &twice, light, tmin, None);
         handed_over += grouped.group_searches;
         for (i, &origin) in origins.iter().enumerate() {
             let ray = Ray { origin, dir: light };
@@ -384,6 +386,8 @@ fn shadow_packets_in_groups(isa: Isa) {
             let what = format!("{isa:?} packet {k} lane {i} of {ray:?}");
             assert_eq!(grouped.occluded(i), blocked, "{what}");
             assert_eq!(plain.occluded(i), blocked, "{what}");
+            assert_eq!(wide.occluded(i), blocked, "32 lanes, {what}");
+            assert_eq!(wide.occluded(16 + i), blocked, "32 lanes, {what}");
             occluded += blocked as usize;
         }
     }
