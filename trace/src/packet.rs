@@ -4,13 +4,15 @@
 //! its lanes is a plain `for i in 0..N` over fixed-size arrays, written
 //! without branches, so that LLVM turns it into SIMD: the render entry
 //! points (`render.rs`) instantiate this code inside functions compiled for
-//! AVX-512 (16 lanes) or AVX2 (8 lanes), chosen at run time, with a portable
-//! fallback. Hand-written intrinsics would tie the kernel to one ISA; the
-//! generated code was checked (objdump) to do its arithmetic on full-width
-//! vector registers. The one exception is sparse 16-lane packets
-//! (`crate::quad`): lane masks and a node's children tested for four lanes
-//! at once need AVX-512 instructions LLVM does not emit from lane loops;
-//! they have a lane-by-lane twin, which a test compares them with.
+//! AVX-512 or AVX2 (16 or 32 lanes), chosen at run time, with a portable
+//! fallback (8 lanes). Hand-written intrinsics would tie the kernel to one
+//! ISA; the generated code was checked (objdump) to do its arithmetic on
+//! full-width vector registers. The exceptions are where a vector holds
+//! several lanes against a node's four children at once, which LLVM does
+//! not emit from lane loops: sparse 16-lane packets (`crate::quad`, with a
+//! lane-by-lane twin a test compares them with), and shadow subtrees handed
+//! over to groups of lanes (`group` for AVX-512, `group_avx2`; tests
+//! compare the packets that hand over with brute force).
 //!
 //! [`Traversal`] walks the high-level BSP front to back as a hierarchy of
 //! content boxes, then each voxel's 4-wide BVH, culling per lane against
