@@ -120,7 +120,8 @@ pub struct Packet<const N: usize> {
 /// How a shadow packet's sparse subtrees are searched: by the whole packet,
 /// or handed over to the few lanes that enter them.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Groups {
+pub(crate) enum Groups {
+    /// Every subtree searched by the whole packet.
     Off,
     /// Up to four lanes at a time in one AVX-512 vector (`group`): 16-lane
     /// packets where the CPU has AVX-512F and BMI2.
@@ -556,8 +557,8 @@ impl<const N: usize> Packet<N> {
         ) {
             match self.groups {
                 Groups::Avx512 if N == 16 && self.tmin >= 0.0 => {
-                    // SAFETY: `Groups::Avx512` only where the CPU has AVX-512F and
-                    // BMI2; N is 16, so the types are the same.
+                    // SAFETY: `Groups::Avx512` only where the CPU has
+                    // AVX-512F and BMI2; N is 16, so the types are the same.
                     unsafe {
                         let p = &mut *(self as *mut Packet<N> as *mut Packet<16>);
                         let shear = &*(shear as *const Shear<N> as *const Shear<16>);
