@@ -32,6 +32,8 @@
 mod group;
 #[cfg(target_arch = "x86_64")]
 mod group_avx2;
+#[cfg(target_arch = "x86_64")]
+mod subtree;
 
 use crate::accel::{prefetch, Frame, PreparedVoxel, TopLevel, TopNode, VoxelSource, WideNode};
 use crate::quad;

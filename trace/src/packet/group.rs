@@ -22,13 +22,10 @@
 //! steps take the shortest exact forms instead (see
 //! [`GroupRays::children`]).
 
-use super::{edge_lane, prefetch_children, Packet, Shear, WIDEN};
+use super::subtree::{block_lanes, lane_order, redo_edges, walk, GroupTests};
+use super::{Packet, Shear, WIDEN};
 use crate::accel::{PreparedVoxel, WideNode};
 use std::arch::x86_64::*;
-
-/// Each node pushes at most 4 entries and the BVH is at most 64 binary
-/// levels deep (as `Packet::search`).
-const STACK: usize = 4 * 64 + 4;
 
 /// Blocks every lane of `group` (at most four of the shadow packet `p`'s
 /// lanes) that a triangle below `root` blocks: a child slot of a node of
@@ -69,49 +66,43 @@ pub(super) unsafe fn subtree(
         flat: [0, 1, 2]
             .map(|a| _mm512_cmp_ps_mask::<_CMP_EQ_OQ>(gather(&p.dir[a]), _mm512_setzero_ps())),
     };
-    let count = group.count_ones();
-    let mut lane_of = [0usize; 4];
-    let mut g = group;
-    for slot in lane_of.iter_mut().take(count as usize) {
-        *slot = g.trailing_zeros() as usize;
-        g &= g - 1;
+    let tests = Avx512Group {
+        rays,
+        frame: Dequantizer::new(vox),
+        lane_of: lane_order(group),
+    };
+    walk(p, &tests, vox, group.count_ones(), root);
+}
+
+/// A group's rays and the voxel's frame, with AVX-512.
+struct Avx512Group {
+    rays: GroupRays,
+    frame: Dequantizer,
+    lane_of: [usize; 4],
+}
+
+// SAFETY (every method): `subtree`'s callers run with AVX-512F and BMI2.
+impl GroupTests<16> for Avx512Group {
+    #[inline(always)]
+    unsafe fn children(&self, node: &WideNode, lanes: u32) -> u32 {
+        self.rays.children(&self.frame, node) & spread_lanes(lanes)
     }
-    let frame = Dequantizer::new(vox);
-    // Bit r: the group's r-th lane is not blocked yet.
-    let mut alive = (1u32 << count) - 1;
-    let mut stack = [std::mem::MaybeUninit::<(u32, u32)>::uninit(); STACK];
-    stack[0].write((root, alive));
-    let mut top = 1usize;
-    while top > 0 {
-        top -= 1;
-        // SAFETY: slots below `top` were all written.
-        let (entry, entered) = stack[top].assume_init();
-        // Lanes blocked since the entry was pushed need nothing below it.
-        let lanes = entered & alive;
-        if lanes == 0 {
-            continue;
-        }
-        let kind = entry >> WideNode::KIND_SHIFT;
-        let index = entry & WideNode::INDEX_MASK;
-        if kind != 0 {
-            alive &= !leaf(p, &rays, vox, index, kind, lanes, &lane_of);
-            if alive == 0 {
-                return;
-            }
-            continue;
-        }
-        let node = &vox.nodes[index as usize];
-        prefetch_children::<16>(vox, node);
-        let hit = rays.children(&frame, node) & spread_lanes(lanes);
-        // Stored order, the last child on top (as `Packet::search` does
-        // for shadow packets).
-        for c in 0..4 {
-            let child_lanes = _pext_u32(hit, 0x1111 << c);
-            if child_lanes != 0 {
-                stack[top].write((node.child[c], child_lanes));
-                top += 1;
-            }
-        }
+
+    #[inline(always)]
+    unsafe fn leaf(
+        &self,
+        p: &mut Packet<16>,
+        vox: &PreparedVoxel,
+        first: u32,
+        count: u32,
+        lanes: u32,
+    ) -> u32 {
+        leaf(p, &self.rays, vox, first, count, lanes, &self.lane_of)
+    }
+
+    #[inline(always)]
+    unsafe fn child_lanes(hit: u32, c: usize) -> u32 {
+        _pext_u32(hit, 0x1111 << c)
     }
 }
 
@@ -338,14 +329,12 @@ unsafe fn leaf(
         let (sx, sy, sz) = (store(rays.sx), store(rays.sy), store(rays.sz));
         let (mut uu, mut vv, mut ww, mut tt) = (store(u), store(v), store(w), store(t));
         let mut dd = store(det);
-        let mut e = edge;
-        while e != 0 {
-            let i = e.trailing_zeros() as usize;
-            e &= e - 1;
-            let c = [0, 1, 2].map(|corner| [0, 1, 2].map(|slot| corners[corner][slot][i]));
-            (uu[i], vv[i], ww[i], tt[i]) = edge_lane(c, (sx[i], sy[i], sz[i]));
-            dd[i] = uu[i] + vv[i] + ww[i];
-        }
+        redo_edges(
+            edge,
+            &corners,
+            [&sx, &sy, &sz],
+            [&mut uu, &mut vv, &mut ww, &mut tt, &mut dd],
+        );
         let load = |a: &[f32; 16]| _mm512_loadu_ps(a.as_ptr());
         (u, v, w, t, det) = (load(&uu), load(&vv), load(&ww), load(&tt), load(&dd));
     }
@@ -365,28 +354,9 @@ unsafe fn leaf(
     if take == 0 {
         return 0;
     }
-    let mut blocked = 0u32;
     let (mut vs, mut ws, mut ds) = ([0f32; 16], [0f32; 16], [0f32; 16]);
     _mm512_storeu_ps(vs.as_mut_ptr(), v);
     _mm512_storeu_ps(ws.as_mut_ptr(), w);
     _mm512_storeu_ps(ds.as_mut_ptr(), det);
-    for (r, &lane) in lane_of.iter().enumerate() {
-        let nibble = (take >> (4 * r)) & 0xF;
-        if nibble == 0 {
-            continue;
-        }
-        // The first triangle in the leaf's order, as the packet's loop
-        // keeps.
-        let j = nibble.trailing_zeros() as usize;
-        let i = 4 * r + j;
-        let inv_det = 1.0 / ds[i];
-        p.t[lane] = f32::NEG_INFINITY;
-        p.id[lane] = vox.ids[first + j];
-        p.voxel[lane] = vox.id;
-        p.tri[lane] = (first + j) as u32;
-        p.u[lane] = vs[i] * inv_det;
-        p.v[lane] = ws[i] * inv_det;
-        blocked |= 1 << r;
-    }
-    blocked
+    block_lanes(p, vox, first, lane_of, take, &vs, &ws, &ds)
 }

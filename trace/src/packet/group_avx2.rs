@@ -16,13 +16,10 @@
 //! packet's arithmetic (`core`, `Packet::accept`), so the same triangles
 //! block the same lanes. Which blocking triangle a lane records may differ.
 
-use super::{edge_lane, prefetch_children, FrameRays, Packet, Shear};
+use super::subtree::{block_lanes, lane_order, redo_edges, walk, GroupTests};
+use super::{FrameRays, Packet, Shear};
 use crate::accel::{PreparedVoxel, WideNode};
 use std::arch::x86_64::*;
-
-/// Each node pushes at most 4 entries and the BVH is at most 64 binary
-/// levels deep (as `Packet::search`).
-const STACK: usize = 4 * 64 + 4;
 
 /// Blocks every lane of `group` (one to four of the shadow packet `p`'s
 /// lanes, a bit each) that a triangle below `root` blocks: a child slot of
@@ -63,15 +60,7 @@ unsafe fn search<const N: usize, const H: usize>(
     group: u32,
     root: u32,
 ) {
-    let count = group.count_ones();
-    // The group's lanes in order; positions of lanes past its last repeat
-    // its first (their bits are never set).
-    let mut lane_of = [group.trailing_zeros() as usize; 4];
-    let mut g = group;
-    for slot in lane_of.iter_mut().take(count as usize) {
-        *slot = g.trailing_zeros() as usize;
-        g &= g - 1;
-    }
+    let lane_of = lane_order(group);
     let halves = |v: &[f32; N]| -> [__m256; H] {
         std::array::from_fn(|h| {
             let (a, b) = (lane_of[2 * h], lane_of[2 * h + 1]);
@@ -101,44 +90,38 @@ unsafe fn search<const N: usize, const H: usize>(
         sy: halves(&shear.sy),
         sz: halves(&shear.sz),
     };
-    // Bit r: the group's r-th lane is not blocked yet.
-    let mut alive = (1u32 << count) - 1;
-    let mut stack = [std::mem::MaybeUninit::<(u32, u32)>::uninit(); STACK];
-    stack[0].write((root, alive));
-    let mut top = 1usize;
-    while top > 0 {
-        top -= 1;
-        // SAFETY: slots below `top` were all written.
-        let (entry, entered) = stack[top].assume_init();
-        // Lanes blocked since the entry was pushed need nothing below it.
-        let lanes = entered & alive;
-        if lanes == 0 {
-            continue;
-        }
-        let kind = entry >> WideNode::KIND_SHIFT;
-        let index = entry & WideNode::INDEX_MASK;
-        if kind != 0 {
-            alive &= !leaf(p, &rays, vox, index, kind, lanes, &lane_of);
-            if alive == 0 {
-                return;
-            }
-            continue;
-        }
-        let node = &vox.nodes[index as usize];
-        prefetch_children::<N>(vox, node);
-        let hit = rays.children(node) & spread_lanes(lanes);
-        // Stored order, the last child on top (as `Packet::search` does
-        // for shadow packets).
-        for c in 0..4 {
-            let child_lanes = ((hit >> c) & 1)
-                | ((hit >> (3 + c)) & 2)
-                | ((hit >> (6 + c)) & 4)
-                | ((hit >> (9 + c)) & 8);
-            if child_lanes != 0 {
-                stack[top].write((node.child[c], child_lanes));
-                top += 1;
-            }
-        }
+    walk(
+        p,
+        &Avx2Group { rays, lane_of },
+        vox,
+        group.count_ones(),
+        root,
+    );
+}
+
+/// A group's rays in `H` vectors, with AVX2.
+struct Avx2Group<const H: usize> {
+    rays: GroupRays<H>,
+    lane_of: [usize; 4],
+}
+
+// SAFETY (every method): `subtree`'s callers run with AVX2.
+impl<const N: usize, const H: usize> GroupTests<N> for Avx2Group<H> {
+    #[inline(always)]
+    unsafe fn children(&self, node: &WideNode, lanes: u32) -> u32 {
+        self.rays.children(node) & spread_lanes(lanes)
+    }
+
+    #[inline(always)]
+    unsafe fn leaf(
+        &self,
+        p: &mut Packet<N>,
+        vox: &PreparedVoxel,
+        first: u32,
+        count: u32,
+        lanes: u32,
+    ) -> u32 {
+        leaf(p, &self.rays, vox, first, count, lanes, &self.lane_of)
     }
 }
 
@@ -265,7 +248,9 @@ unsafe fn leaf<const N: usize, const H: usize>(
     let comp = [c0, c1, c2, c3, c4, c5, c6, c7, c8];
     let valid = spread_lanes(lanes) & (((1u32 << count) - 1) * 0x1111);
     let mut take = 0;
-    let mut found = [[_mm256_setzero_ps(); 3]; H];
+    // Half h's positions at 8h: position 4r + j of the group at index
+    // 4r + j.
+    let (mut vs, mut ws, mut ds) = ([0f32; 16], [0f32; 16], [0f32; 16]);
     for h in 0..H {
         let valid = (valid >> (8 * h)) & 0xFF;
         if valid == 0 {
@@ -273,36 +258,14 @@ unsafe fn leaf<const N: usize, const H: usize>(
         }
         let (inside, v, w, det) = triangles(rays, h, &comp, valid);
         take |= inside << (8 * h);
-        found[h] = [v, w, det];
+        _mm256_storeu_ps(vs.as_mut_ptr().add(8 * h), v);
+        _mm256_storeu_ps(ws.as_mut_ptr().add(8 * h), w);
+        _mm256_storeu_ps(ds.as_mut_ptr().add(8 * h), det);
     }
     if take == 0 {
         return 0;
     }
-    let mut blocked = 0u32;
-    for (r, &lane) in lane_of.iter().enumerate() {
-        let nibble = (take >> (4 * r)) & 0xF;
-        if nibble == 0 {
-            continue;
-        }
-        // The first triangle in the leaf's order, as the packet's loop
-        // keeps.
-        let j = nibble.trailing_zeros() as usize;
-        let i = 4 * (r % 2) + j;
-        let [vs, ws, ds] = found[r / 2].map(|x| {
-            let mut a = [0f32; 8];
-            _mm256_storeu_ps(a.as_mut_ptr(), x);
-            a
-        });
-        let inv_det = 1.0 / ds[i];
-        p.t[lane] = f32::NEG_INFINITY;
-        p.id[lane] = vox.ids[first + j];
-        p.voxel[lane] = vox.id;
-        p.tri[lane] = (first + j) as u32;
-        p.u[lane] = vs[i] * inv_det;
-        p.v[lane] = ws[i] * inv_det;
-        blocked |= 1 << r;
-    }
-    blocked
+    block_lanes(p, vox, first, lane_of, take, &vs, &ws, &ds)
 }
 
 /// The watertight test of half `h`'s two lanes against a leaf's
@@ -366,14 +329,12 @@ unsafe fn triangles<const H: usize>(
         let (sx, sy, sz) = (store(sx), store(sy), store(sz));
         let (mut uu, mut vv, mut ww, mut tt) = (store(u), store(v), store(w), store(t));
         let mut dd = store(det);
-        let mut e = edge;
-        while e != 0 {
-            let i = e.trailing_zeros() as usize;
-            e &= e - 1;
-            let c = [0, 1, 2].map(|corner| [0, 1, 2].map(|slot| corners[corner][slot][i]));
-            (uu[i], vv[i], ww[i], tt[i]) = edge_lane(c, (sx[i], sy[i], sz[i]));
-            dd[i] = uu[i] + vv[i] + ww[i];
-        }
+        redo_edges(
+            edge,
+            &corners,
+            [&sx, &sy, &sz],
+            [&mut uu, &mut vv, &mut ww, &mut tt, &mut dd],
+        );
         let load = |a: &[f32; 8]| _mm256_loadu_ps(a.as_ptr());
         (u, v, w, t, det) = (load(&uu), load(&vv), load(&ww), load(&tt), load(&dd));
     }
