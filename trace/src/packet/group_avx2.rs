@@ -152,8 +152,10 @@ struct GroupRays<const H: usize> {
 
 impl<const H: usize> GroupRays<H> {
     /// Bit `4r + c`: lane r enters child c of `node` (slots past the last
-    /// child never). `FrameRays::clip`'s arithmetic; its maxima and minima
-    /// are taken in pairs, which ignores a NaN plane as the packet does.
+    /// child never). `FrameRays::clip`'s arithmetic, with its maxima and
+    /// minima taken in pairs: the same answers wherever no plane is NaN;
+    /// where one is, a pair ignores it and its partner, so the group may
+    /// enter a box the packet would cull, never the reverse.
     #[inline]
     #[target_feature(enable = "avx2")]
     unsafe fn children(&self, node: &WideNode) -> u32 {
