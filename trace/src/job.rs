@@ -46,7 +46,8 @@ pub(crate) struct Ctx<'a> {
     /// Whether shadow packets hand sparse subtrees over to groups of lanes
     /// ([`Packet::hand_off_sparse_subtrees`]): where the kernel runs its
     /// AVX-512 or AVX2 code (`render` clears it for tiles whose rays stay
-    /// together, [`crate::render::PacketChooser::scattered`]).
+    /// together, [`crate::render::PacketChooser::scattered`]; the cluster's
+    /// tiles, [`crate::tile`], keep it for AVX-512 only).
     pub groups: bool,
     /// Whether the tile's rays part ways, so that their hits lie far
     /// apart in memory: the surface stage then starts every lane's reads

@@ -557,8 +557,8 @@ impl<const N: usize> Packet<N> {
             self.any_hit && (1..=4).contains(&lanes.count_ones()),
             shear.uniform(),
         ) {
-            match self.groups {
-                Groups::Avx512 if N == 16 && self.tmin >= 0.0 => {
+            match (self.groups, frame) {
+                (Groups::Avx512, _) if N == 16 && self.tmin >= 0.0 => {
                     // SAFETY: `Groups::Avx512` only where the CPU has
                     // AVX-512F and BMI2; N is 16, so the types are the same.
                     unsafe {
@@ -567,8 +567,7 @@ impl<const N: usize> Packet<N> {
                         group::subtree(p, shear, vox, (as16(seg.0), as16(seg.1)), lanes, root);
                     }
                 }
-                Groups::Avx2 if frame.is_some() => {
-                    let frame = frame.expect("just checked");
+                (Groups::Avx2, Some(frame)) => {
                     // SAFETY: `Groups::Avx2` only where the CPU has AVX2.
                     unsafe { group_avx2::subtree(self, shear, frame, vox, seg, lanes, root) };
                 }

@@ -539,8 +539,8 @@ unsafe fn tile_avx2<const N: usize, const BW: u32>(
 /// (here every voxel is resident, so a job never stops before it is done);
 /// `sparse` packets as [`Packets::Sparse`] says; `scattered` is the packet
 /// chooser's answer whether the tile's rays part ways
-/// ([`PacketChooser::scattered`]): where they do, 16-lane shadow packets hand
-/// sparse subtrees over to groups (AVX-512) and the surface stage starts
+/// ([`PacketChooser::scattered`]): where they do, shadow packets hand
+/// sparse subtrees over to groups (AVX-512, AVX2) and the surface stage starts
 /// every hit's reads first ([`Ctx::scattered`]).
 #[inline(always)]
 fn tile<const N: usize, const BW: u32>(

@@ -176,6 +176,10 @@ pub async fn render_tile_sample(
     };
     let mut ctx = Ctx::new(top, camera.sample_basis(sample), settings, true);
     ctx.quad &= settings.packets == Packets::Sparse;
+    // No packet chooser says here whether a tile's rays part: AVX-512
+    // groups cost little where they do not (3-7 %), AVX2 groups up to 20 %
+    // (`docs/benchmarks.md`), so only AVX-512 hands subtrees over.
+    ctx.groups &= isa == Isa::Avx512;
     match isa {
         #[cfg(target_arch = "x86_64")]
         Isa::Avx512 if settings.packets == Packets::Wide => {
