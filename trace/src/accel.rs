@@ -557,9 +557,9 @@ impl PreparedVoxel {
         }
     }
 
-    /// Starts loading what [`Self::surface`] reads for local triangle
-    /// `tri`: its vertex indices are read now, its corners' normals and
-    /// colors prefetched. A packet's hits are looked up one lane after
+    /// Starts loading what shading reads of local triangle `tri`: its
+    /// vertex indices are read now, its corners' normals and colors
+    /// prefetched. A packet's hits are looked up one lane after
     /// another, and each lookup is a chain of misses (indices, then
     /// normals and colors) in a voxel that traversal did not read;
     /// starting every lane's chain first lets them wait on memory together.
@@ -572,22 +572,6 @@ impl PreparedVoxel {
             prefetch(self.normals.as_ptr().wrapping_add(i as usize) as *const u8);
             prefetch(self.colors.as_ptr().wrapping_add(i as usize) as *const u8);
         }
-    }
-
-    /// Interpolated unit shading normal and color of local triangle `tri`
-    /// at barycentrics (u, v) (weights of corners b and c).
-    pub fn surface(&self, tri: u32, u: f32, v: f32) -> (Vec3, [f32; 3]) {
-        let [a, b, c] = self.triangles[tri as usize];
-        let w = 1.0 - u - v;
-        let n = self.normals[a as usize] * w
-            + self.normals[b as usize] * u
-            + self.normals[c as usize] * v;
-        let col = |i: u32| {
-            let c = self.colors[i as usize];
-            Vec3::new(c[0] as f32, c[1] as f32, c[2] as f32) / 255.0
-        };
-        let color = col(a) * w + col(b) * u + col(c) * v;
-        (n.normalize_or(Vec3::Y), color.to_array())
     }
 }
 

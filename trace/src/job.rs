@@ -111,6 +111,75 @@ fn rgba(c: Vec3) -> [u8; 4] {
     [to_u8(c.x), to_u8(c.y), to_u8(c.z), 255]
 }
 
+/// Three components of N lanes, axis by axis (`.0[axis][lane]`): the
+/// shape in which lane loops vectorize.
+#[derive(Clone, Copy)]
+struct Axes<const N: usize>([[f32; N]; 3]);
+
+impl<const N: usize> Axes<N> {
+    #[inline(always)]
+    fn splat(v: Vec3) -> Axes<N> {
+        Axes([[v.x; N], [v.y; N], [v.z; N]])
+    }
+
+    #[inline(always)]
+    fn lane(&self, i: usize) -> Vec3 {
+        Vec3::new(self.0[0][i], self.0[1][i], self.0[2][i])
+    }
+
+    #[inline(always)]
+    fn set(&mut self, i: usize, v: Vec3) {
+        for a in 0..3 {
+            self.0[a][i] = v[a];
+        }
+    }
+}
+
+/// What shading reads of a traced packet's hits: copied out of it, so that
+/// the packet is free for the next rays.
+#[derive(Clone, Copy)]
+struct Hits<const N: usize> {
+    t: [f32; N],
+    /// ORIGINAL triangle id, `u32::MAX` where the lane hit nothing.
+    id: [u32; N],
+    voxel: [u32; N],
+    tri: [u32; N],
+    u: [f32; N],
+    v: [f32; N],
+}
+
+impl<const N: usize> Default for Hits<N> {
+    fn default() -> Hits<N> {
+        Hits {
+            t: [f32::INFINITY; N],
+            id: [u32::MAX; N],
+            voxel: [u32::MAX; N],
+            tri: [u32::MAX; N],
+            u: [0.0; N],
+            v: [0.0; N],
+        }
+    }
+}
+
+impl<const N: usize> Hits<N> {
+    #[inline(always)]
+    fn of(p: &Packet<N>) -> Hits<N> {
+        Hits {
+            t: p.t,
+            id: p.id,
+            voxel: p.voxel,
+            tri: p.tri,
+            u: p.u,
+            v: p.v,
+        }
+    }
+
+    #[inline(always)]
+    fn hit(&self, lane: usize) -> bool {
+        self.id[lane] != u32::MAX
+    }
+}
+
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 enum Stage {
     /// Traversing the primary packet.
@@ -140,18 +209,23 @@ pub(crate) struct PacketJob<const N: usize, const BW: u32> {
     trav: Traversal<N>,
     /// The packet being traversed: primary, shadow or reflection.
     packet: Packet<N>,
-    /// The hits being shaded: the primary ones, then each reflection's.
-    cur: Packet<N>,
-    cur_dirs: [Vec3; N],
-    origins: [Vec3; N],
-    reflected: [Vec3; N],
+    /// The hits being shaded: the primary ones, then each reflection's;
+    /// the rays that found them.
+    cur: Hits<N>,
+    cur_dirs: Axes<N>,
+    origins: Axes<N>,
+    reflected: Axes<N>,
     bounce: u32,
     lane: usize,
-    color: [Vec3; N],
+    /// What the surface stage reads of each live lane's triangle: the
+    /// normals and colors (RGBA bytes in one word) of its three corners.
+    corner_normals: [Axes<N>; 3],
+    corner_colors: [[u32; N]; 3],
+    color: Axes<N>,
     weight: [f32; N],
-    points: [Vec3; N],
-    normals: [Vec3; N],
-    albedo: [Vec3; N],
+    points: Axes<N>,
+    normals: Axes<N>,
+    albedo: Axes<N>,
     mirror: [f32; N],
     /// The last [`OCCLUDERS`] distinct triangles that blocked a lane of
     /// this job's shadow packets (kept from block to block; the next to
@@ -173,17 +247,19 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
             stage: Stage::Primary,
             trav: Traversal::default(),
             packet: Packet::new(&[Vec3::ZERO; N], &[Vec3::X; N], 0.0, 0.0),
-            cur: Packet::new(&[Vec3::ZERO; N], &[Vec3::X; N], 0.0, 0.0),
-            cur_dirs: [Vec3::ZERO; N],
-            origins: [Vec3::ZERO; N],
-            reflected: [Vec3::ZERO; N],
+            cur: Hits::default(),
+            cur_dirs: Axes::splat(Vec3::ZERO),
+            origins: Axes::splat(Vec3::ZERO),
+            reflected: Axes::splat(Vec3::ZERO),
             bounce: 0,
             lane: 0,
-            color: [Vec3::ZERO; N],
+            corner_normals: [Axes::splat(Vec3::ZERO); 3],
+            corner_colors: [[0; N]; 3],
+            color: Axes::splat(Vec3::ZERO),
             weight: [1.0; N],
-            points: [Vec3::ZERO; N],
-            normals: [Vec3::Y; N],
-            albedo: [Vec3::ZERO; N],
+            points: Axes::splat(Vec3::ZERO),
+            normals: Axes::splat(Vec3::Y),
+            albedo: Axes::splat(Vec3::ZERO),
             mirror: [0.0; N],
             last_occluders: [None; OCCLUDERS],
             next_occluder: 0,
@@ -197,19 +273,18 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
     #[inline(always)]
     pub fn start(&mut self, ctx: &Ctx, rect: Rect, bx: u32, by: u32) {
         let (x0, y0, w, h) = (rect.x0, rect.y0, rect.width, rect.height);
-        let mut dirs = [Vec3::ZERO; N];
         for i in 0..N {
             let (x, y) = (bx + i as u32 % BW, by + i as u32 / BW);
             let (cx, cy) = (x.min(w - 1), y.min(h - 1));
             self.px[i] = (cx, cy);
             self.own[i] = x == cx && y == cy;
-            dirs[i] = ctx.basis.direction(x0 + cx, y0 + cy);
+            self.cur_dirs.set(i, ctx.basis.direction(x0 + cx, y0 + cy));
         }
-        self.packet = Packet::new(&[ctx.basis.eye; N], &dirs, 0.0, f32::INFINITY);
+        self.origins = Axes::splat(ctx.basis.eye);
+        self.packet = Packet::from_axes(&self.origins.0, &self.cur_dirs.0, 0.0, f32::INFINITY);
         self.packet.quad = ctx.quad;
         // One primary packet in eight measures its coherence.
         self.packet.count_lanes = (bx / BW + by / (N as u32 / BW)) & (LANE_SAMPLE - 1) == 0;
-        self.cur_dirs = dirs;
         self.trav.reset();
         self.stage = Stage::Primary;
     }
@@ -262,7 +337,7 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
                         }
                         _ => {
                             self.trav.reset();
-                            std::mem::swap(&mut self.cur, &mut self.packet);
+                            self.cur = Hits::of(&self.packet);
                             self.origins = self.points;
                             self.cur_dirs = self.reflected;
                             self.bounce += 1;
@@ -282,8 +357,12 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
                     // timing empty packets is not free.)
                     let lit_surfaces = self.weight.iter().any(|&w| w > 0.0);
                     if ctx.settings.shadows && lit_surfaces {
-                        self.packet =
-                            Packet::new(&self.points, &[ctx.light; N], ctx.eps, f32::INFINITY);
+                        self.packet = Packet::from_axes(
+                            &self.points.0,
+                            &Axes::splat(ctx.light).0,
+                            ctx.eps,
+                            f32::INFINITY,
+                        );
                         self.packet.any_hit = true;
                         self.packet.quad = ctx.quad;
                         if ctx.groups {
@@ -376,9 +455,8 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
             self.stage = Stage::Done;
             return;
         }
-        std::mem::swap(&mut self.cur, &mut self.packet);
-        self.origins = [ctx.basis.eye; N];
-        self.color = [Vec3::ZERO; N];
+        self.cur = Hits::of(&self.packet);
+        self.color = Axes::splat(Vec3::ZERO);
         self.weight = [1.0; N];
         self.bounce = 0;
         self.lane = 0;
@@ -388,33 +466,108 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
     /// Surface, color and mirror share of each live lane's hit (Lambert
     /// shading with the interpolated vertex normal and color); a lane that
     /// hit nothing takes the background. `Some(id)` when voxel `id` is
-    /// missing: lanes before `self.lane` are done, call again to go on.
+    /// missing: the corners of lanes before `self.lane` are read, call
+    /// again to go on.
+    ///
+    /// In two passes: the corners' normals and colors of every live lane
+    /// are copied out of the voxels first, lane by lane; then every lane is
+    /// shaded at once in lane loops over axes, which LLVM vectorizes (one
+    /// lane at a time, the arithmetic was most of a shaded frame's cost
+    /// beyond its rays).
     #[inline(always)]
     fn surfaces(&mut self, ctx: &Ctx, source: &dyn VoxelSource) -> Option<u32> {
-        let s = ctx.settings;
-        if self.lane == 0 {
-            self.points = [Vec3::ZERO; N];
-            self.normals = [Vec3::Y; N];
-            self.albedo = [Vec3::ZERO; N];
-            self.mirror = [0.0; N];
-        }
         if ctx.scattered {
             self.prefetch_surfaces(source);
         }
-        let cur = &self.cur;
-        // The voxel of the last surface looked up: neighbouring lanes
-        // mostly hit the same one.
+        if let Some(id) = self.read_corners(source) {
+            return Some(id);
+        }
+        let s = ctx.settings;
+        let mut live = [false; N];
+        for i in 0..N {
+            let alive = self.weight[i] != 0.0;
+            let hit = self.cur.hit(i);
+            live[i] = alive & hit;
+            let miss = alive & !hit;
+            for a in 0..3 {
+                let background = self.color.0[a][i] + BACKGROUND[a] * self.weight[i];
+                self.color.0[a][i] = if miss { background } else { self.color.0[a][i] };
+            }
+            self.weight[i] = if miss { 0.0 } else { self.weight[i] };
+        }
+        // A block of sky has no surface to shade.
+        if !live.contains(&true) {
+            return None;
+        }
+        let [na, nb, nc] = &self.corner_normals;
+        let [ca, cb, cc] = &self.corner_colors;
+        for i in 0..N {
+            let (u, v) = (self.cur.u[i], self.cur.v[i]);
+            let w = 1.0 - u - v;
+            // The operations of `Vec3`, component by component, in its
+            // order: the colors stay those of the reference renderer.
+            let mut n = [0.0; 3];
+            let mut color = [0.0; 3];
+            for a in 0..3 {
+                n[a] = na.0[a][i] * w + nb.0[a][i] * u + nc.0[a][i] * v;
+                let channel = |c: u32| ((c >> (8 * a)) & 0xff) as f32 / 255.0;
+                color[a] = channel(ca[i]) * w + channel(cb[i]) * u + channel(cc[i]) * v;
+            }
+            // `normalize_or(Vec3::Y)`.
+            let rcp = 1.0 / (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
+            let unit = rcp.is_finite() && rcp > 0.0;
+            let n = if unit {
+                n.map(|c| c * rcp)
+            } else {
+                Vec3::Y.to_array()
+            };
+            let d = self.cur_dirs.lane(i).to_array();
+            let facing_away = n[0] * d[0] + n[1] * d[1] + n[2] * d[2] > 0.0;
+            for a in 0..3 {
+                let n = if facing_away { -n[a] } else { n[a] };
+                let point = self.origins.0[a][i] + d[a] * self.cur.t[i];
+                self.points.0[a][i] = if live[i] { point } else { 0.0 };
+                self.normals.0[a][i] = if live[i] { n } else { Vec3::Y[a] };
+                self.albedo.0[a][i] = if live[i] { color[a] } else { 0.0 };
+            }
+            self.mirror[i] = 0.0;
+        }
+        if self.bounce < s.reflections {
+            for i in 0..N {
+                if live[i] && s.reflective.matches(self.cur.id[i], self.albedo.lane(i)) {
+                    self.mirror[i] = s.reflectance;
+                }
+            }
+        }
+        if s.voxel_colors {
+            for i in 0..N {
+                if live[i] {
+                    // The voxel whose cell holds the point: the one the
+                    // hit was found in depends on the traversal order
+                    // when the triangle straddles cells.
+                    let id = ctx.top.voxel_at(self.points.lane(i));
+                    self.albedo
+                        .set(i, voxel_color(id.unwrap_or(self.cur.voxel[i])));
+                }
+            }
+        }
+        None
+    }
+
+    /// Copies the corners' normals and colors of each live lane's hit,
+    /// from lane `self.lane` on, into [`Self::corner_normals`] and
+    /// [`Self::corner_colors`]; `Some(id)` when voxel `id` is missing
+    /// (`self.lane` is then the lane that needs it).
+    #[inline(always)]
+    fn read_corners(&mut self, source: &dyn VoxelSource) -> Option<u32> {
+        // The voxel of the last lane read: neighbouring lanes mostly hit
+        // the same one.
         let mut last: Option<crate::accel::VoxelRef<'_>> = None;
         for i in self.lane..N {
-            if self.weight[i] == 0.0 {
+            if self.weight[i] == 0.0 || !self.cur.hit(i) {
                 continue;
             }
-            if !cur.hit(i) {
-                self.color[i] += BACKGROUND * self.weight[i];
-                self.weight[i] = 0.0;
-                continue;
-            }
-            let id = cur.voxel[i];
+            let id = self.cur.voxel[i];
             if last.as_ref().is_none_or(|v| v.id != id) {
                 match source.voxel(id) {
                     Some(v) => last = Some(v),
@@ -425,26 +578,16 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
                 }
             }
             let vox = last.as_ref().expect("just set");
-            let (mut n, c) = vox.surface(cur.tri[i], cur.u[i], cur.v[i]);
-            let c = Vec3::from_array(c);
-            if n.dot(self.cur_dirs[i]) > 0.0 {
-                n = -n;
-            }
-            let point = self.origins[i] + self.cur_dirs[i] * cur.t[i];
-            self.points[i] = point;
-            self.normals[i] = n;
-            self.albedo[i] = if s.voxel_colors {
-                // The voxel whose cell holds the point: the one the hit
-                // was found in depends on the traversal order when the
-                // triangle straddles cells.
-                voxel_color(ctx.top.voxel_at(point).unwrap_or(id))
-            } else {
-                c
-            };
-            if self.bounce < s.reflections && s.reflective.matches(cur.id[i], c) {
-                self.mirror[i] = s.reflectance;
+            let corners = vox.triangles[self.cur.tri[i] as usize];
+            for (k, &c) in corners.iter().enumerate() {
+                let n = vox.normals[c as usize];
+                for a in 0..3 {
+                    self.corner_normals[k].0[a][i] = n[a];
+                }
+                self.corner_colors[k][i] = u32::from_le_bytes(vox.colors[c as usize]);
             }
         }
+        self.lane = N;
         None
     }
 
@@ -493,37 +636,50 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
     /// writes the colors when no lane reflects.
     #[inline(always)]
     fn light(&mut self, ctx: &Ctx, lit: &[bool; N], out: &mut Region, stats: &mut FrameStats) {
+        let l = ctx.light.to_array();
         let mut any_mirror = false;
         for i in 0..N {
-            if self.weight[i] == 0.0 {
-                continue;
-            }
+            let alive = self.weight[i] != 0.0;
+            let n = self.normals.lane(i).to_array();
             let diffuse = if lit[i] {
-                self.normals[i].dot(ctx.light).max(0.0)
+                (n[0] * l[0] + n[1] * l[1] + n[2] * l[2]).max(0.0)
             } else {
                 0.0
             };
-            let local = self.albedo[i] * (AMBIENT + (1.0 - AMBIENT) * diffuse);
-            self.color[i] += local * (self.weight[i] * (1.0 - self.mirror[i]));
-            self.weight[i] *= self.mirror[i];
+            let share = self.weight[i] * (1.0 - self.mirror[i]);
+            for a in 0..3 {
+                let local = self.albedo.0[a][i] * (AMBIENT + (1.0 - AMBIENT) * diffuse);
+                let lit_color = self.color.0[a][i] + local * share;
+                self.color.0[a][i] = if alive { lit_color } else { self.color.0[a][i] };
+            }
+            self.weight[i] = if alive {
+                self.weight[i] * self.mirror[i]
+            } else {
+                self.weight[i]
+            };
             any_mirror |= self.weight[i] > 0.0;
         }
         if !any_mirror {
+            let mut pixels = [[0u8; 4]; N];
+            for i in 0..N {
+                pixels[i] = rgba(self.color.lane(i));
+            }
             for i in 0..N {
                 if self.own[i] {
                     let (x, y) = self.px[i];
-                    out.rgba[(y * out.width + x) as usize] = rgba(self.color[i]);
+                    out.rgba[(y * out.width + x) as usize] = pixels[i];
                 }
             }
             self.stage = Stage::Done;
             return;
         }
         for i in 0..N {
-            let d = self.cur_dirs[i];
-            let n = self.normals[i];
-            self.reflected[i] = (d - n * (2.0 * d.dot(n))).normalize_or(n);
+            let d = self.cur_dirs.lane(i);
+            let n = self.normals.lane(i);
+            self.reflected
+                .set(i, (d - n * (2.0 * d.dot(n))).normalize_or(n));
         }
-        self.packet = Packet::new(&self.points, &self.reflected, ctx.eps, f32::INFINITY);
+        self.packet = Packet::from_axes(&self.points.0, &self.reflected.0, ctx.eps, f32::INFINITY);
         self.packet.quad = ctx.quad;
         for i in 0..N {
             if self.weight[i] == 0.0 {

@@ -147,14 +147,19 @@ impl<const N: usize> Packet<N> {
     /// A packet of rays from `origins` along unit `dirs`, far limit `tmax`.
     #[inline(always)]
     pub fn new(origins: &[Vec3; N], dirs: &[Vec3; N], tmin: f32, tmax: f32) -> Packet<N> {
-        let mut org = [[0.0; N]; 3];
-        let mut dir = [[0.0; N]; 3];
+        let org = [0, 1, 2].map(|a| std::array::from_fn(|i| origins[i][a]));
+        let dir = [0, 1, 2].map(|a| std::array::from_fn(|i| dirs[i][a]));
+        Packet::from_axes(&org, &dir, tmin, tmax)
+    }
+
+    /// [`Self::new`] from origins and directions given axis by axis
+    /// (`org[axis][lane]`).
+    #[inline(always)]
+    pub fn from_axes(org: &[[f32; N]; 3], dir: &[[f32; N]; 3], tmin: f32, tmax: f32) -> Packet<N> {
         let mut inv = [[0.0; N]; 3];
         for a in 0..3 {
             for i in 0..N {
-                org[a][i] = origins[i][a];
-                let d = dirs[i][a];
-                dir[a][i] = d;
+                let d = dir[a][i];
                 let guarded = if d == 0.0 { TINY.copysign(d) } else { d };
                 inv[a][i] = 1.0 / guarded;
             }
@@ -176,8 +181,8 @@ impl<const N: usize> Packet<N> {
             }
         });
         Packet {
-            org,
-            dir,
+            org: *org,
+            dir: *dir,
             inv,
             signs,
             tmin,
