@@ -18,6 +18,13 @@
 //! living room has overlapping coplanar triangles, where Embree and dray pick
 //! different ones on about 1.5 % of the pixels of its default view.
 //!
+//! Shaded frames: embree-bench's frame modes, which `scripts/bench-kernel`
+//! sets against dray's shaded frames, must do dray's shading. Where both hit
+//! the same triangle (or both missed), at least 98.9 % of the pixels of
+//! Embree's last shaded frame are within 2 of dray's `--shadows` image in
+//! every channel (rounding, and shadow edges where the two kernels answer a
+//! grazing shadow ray differently).
+//!
 //! Needs Embree 3 and gcc (`apt-get install -y libembree-dev gcc`). Without
 //! Embree the tests pass after printing that they skipped the comparison,
 //! unless `DRAY_REQUIRE_EMBREE=1` (set by `.ci/run`) makes that a failure.
@@ -394,6 +401,20 @@ fn read_u32(path: &Path) -> Vec<u32> {
         .collect()
 }
 
+/// A binary PPM (P6, 8 bits) as embree-bench writes it: RGB, top row first.
+fn read_ppm(path: &Path) -> Vec<[u8; 3]> {
+    let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    let header = format!("P6\n{WIDTH} {HEIGHT}\n255\n");
+    assert!(
+        bytes.starts_with(header.as_bytes()),
+        "{}: not a {WIDTH}x{HEIGHT} PPM",
+        path.display()
+    );
+    let body = &bytes[header.len()..];
+    assert_eq!(body.len(), WIDTH * HEIGHT * 3, "{}: size", path.display());
+    body.chunks_exact(3).map(|p| [p[0], p[1], p[2]]).collect()
+}
+
 /// Depth and primitive ids of one rendering, top-to-bottom rows.
 struct Image {
     depth: Vec<f32>,
@@ -445,7 +466,8 @@ fn compare(v: &View, eye: [f32; 3], look: [f32; 3]) {
         .args(camera_args(eye, look, false))
         .args(["--threads", "1", "--repeat", "1"])
         .args(["--depth-out", &path("embree", "pfm")])
-        .args(["--primid-out", &path("embree", "u32")]));
+        .args(["--primid-out", &path("embree", "u32")])
+        .args(["--rgb-out", &path("embree", "ppm")]));
     let e = last_json(&out, "embree_bench");
     assert_eq!(json_vec3(&e["eye"]), eye, "Embree read another eye");
     assert_eq!(json_vec3(&e["look"]), look, "Embree read another look");
@@ -454,9 +476,10 @@ fn compare(v: &View, eye: [f32; 3], look: [f32; 3]) {
         .arg("render")
         .arg(db)
         .args(camera_args(eye, look, true))
-        .args(["--threads", "2", "--repeat", "1", "--json"])
+        .args(["--threads", "2", "--repeat", "1", "--json", "--shadows"])
         .args(["--depth-out", &path("dray", "pfm")])
         .args(["--primid-out", &path("dray", "u32")])
+        .args(["--out", &path("dray", "png")])
         .env("RUST_LOG", "warn"));
     let d = last_json(&out, "dray render --json");
     assert_eq!(d["width"], WIDTH, "{d}");
@@ -525,6 +548,29 @@ fn compare(v: &View, eye: [f32; 3], look: [f32; 3]) {
         worst_at / WIDTH,
     );
     println!("{summary}");
+    // Embree's shaded frame (its `frame` modes, which the benchmark sets
+    // against dray's shaded frames) does dray's shading: the same colors,
+    // up to rounding and shadow edges, wherever both found the same triangle.
+    let rgb = read_ppm(Path::new(&path("embree", "ppm")));
+    let png = std::fs::read(path("dray", "png")).expect("dray's shaded frame");
+    let (_, _, rgba) = dray_trace::image::decode_png(&png).expect("dray's PNG");
+    let same: Vec<usize> = (0..n).filter(|&i| a.ids[i] == b.ids[i]).collect();
+    let close = same
+        .iter()
+        .filter(|&&i| (0..3).all(|c| rgb[i][c].abs_diff(rgba[i][c]) <= 2))
+        .count();
+    let shaded_agreement = close as f64 / same.len() as f64;
+    println!(
+        "{name}/{view}: shaded colors within 2 of 255 on {:.3} % of the {} pixels with the same triangle",
+        100.0 * shaded_agreement,
+        same.len()
+    );
+    assert!(
+        shaded_agreement >= MIN_PRIMID_AGREEMENT - 0.01,
+        "{name}/{view}: Embree's shaded frame differs from dray's on {} of {} pixels",
+        same.len() - close,
+        same.len()
+    );
     let ok = agreement >= MIN_PRIMID_AGREEMENT && over == 0;
     if !ok {
         // Keep the images for a look at the failure.
