@@ -455,6 +455,19 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
             self.stage = Stage::Done;
             return;
         }
+        // A block of sky takes the background without the shading stages
+        // (from afar most blocks are sky).
+        if !(0..N).any(|i| p.hit(i)) {
+            let sky = rgba(BACKGROUND);
+            for i in 0..N {
+                if self.own[i] {
+                    let (x, y) = self.px[i];
+                    out.rgba[(y * out.width + x) as usize] = sky;
+                }
+            }
+            self.stage = Stage::Done;
+            return;
+        }
         self.cur = Hits::of(&self.packet);
         self.color = Axes::splat(Vec3::ZERO);
         self.weight = [1.0; N];
