@@ -484,9 +484,8 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
     ///
     /// In two passes: the corners' normals and colors of every live lane
     /// are copied out of the voxels first, lane by lane; then every lane is
-    /// shaded at once in lane loops over axes, which LLVM vectorizes (one
-    /// lane at a time, the arithmetic was most of a shaded frame's cost
-    /// beyond its rays).
+    /// shaded at once in lane loops over axes, which LLVM vectorizes (lane
+    /// by lane, the arithmetic cost more than the reads).
     #[inline(always)]
     fn surfaces(&mut self, ctx: &Ctx, source: &dyn VoxelSource) -> Option<u32> {
         if ctx.scattered {
@@ -508,7 +507,8 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
             }
             self.weight[i] = if miss { 0.0 } else { self.weight[i] };
         }
-        // A block of sky has no surface to shade.
+        // No live lane (every reflected ray left the model, say): nothing
+        // to shade.
         if !live.contains(&true) {
             return None;
         }
