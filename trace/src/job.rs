@@ -135,51 +135,6 @@ impl<const N: usize> Axes<N> {
     }
 }
 
-/// What shading reads of a traced packet's hits: copied out of it, so that
-/// the packet is free for the next rays.
-#[derive(Clone, Copy)]
-struct Hits<const N: usize> {
-    t: [f32; N],
-    /// ORIGINAL triangle id, `u32::MAX` where the lane hit nothing.
-    id: [u32; N],
-    voxel: [u32; N],
-    tri: [u32; N],
-    u: [f32; N],
-    v: [f32; N],
-}
-
-impl<const N: usize> Default for Hits<N> {
-    fn default() -> Hits<N> {
-        Hits {
-            t: [f32::INFINITY; N],
-            id: [u32::MAX; N],
-            voxel: [u32::MAX; N],
-            tri: [u32::MAX; N],
-            u: [0.0; N],
-            v: [0.0; N],
-        }
-    }
-}
-
-impl<const N: usize> Hits<N> {
-    #[inline(always)]
-    fn of(p: &Packet<N>) -> Hits<N> {
-        Hits {
-            t: p.t,
-            id: p.id,
-            voxel: p.voxel,
-            tri: p.tri,
-            u: p.u,
-            v: p.v,
-        }
-    }
-
-    #[inline(always)]
-    fn hit(&self, lane: usize) -> bool {
-        self.id[lane] != u32::MAX
-    }
-}
-
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 enum Stage {
     /// Traversing the primary packet.
@@ -207,11 +162,10 @@ pub(crate) struct PacketJob<const N: usize, const BW: u32> {
     own: [bool; N],
     stage: Stage,
     trav: Traversal<N>,
-    /// The packet being traversed: primary, shadow or reflection.
+    /// The packet being traversed: primary, shadow or reflection; once
+    /// traversed, and until its surfaces are read, the hits being shaded.
     packet: Packet<N>,
-    /// The hits being shaded: the primary ones, then each reflection's;
-    /// the rays that found them.
-    cur: Hits<N>,
+    /// The rays of the hits being shaded.
     cur_dirs: Axes<N>,
     origins: Axes<N>,
     reflected: Axes<N>,
@@ -247,7 +201,6 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
             stage: Stage::Primary,
             trav: Traversal::default(),
             packet: Packet::new(&[Vec3::ZERO; N], &[Vec3::X; N], 0.0, 0.0),
-            cur: Hits::default(),
             cur_dirs: Axes::splat(Vec3::ZERO),
             origins: Axes::splat(Vec3::ZERO),
             reflected: Axes::splat(Vec3::ZERO),
@@ -337,7 +290,6 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
                         }
                         _ => {
                             self.trav.reset();
-                            self.cur = Hits::of(&self.packet);
                             self.origins = self.points;
                             self.cur_dirs = self.reflected;
                             self.bounce += 1;
@@ -468,7 +420,6 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
             self.stage = Stage::Done;
             return;
         }
-        self.cur = Hits::of(&self.packet);
         self.color = Axes::splat(Vec3::ZERO);
         self.weight = [1.0; N];
         self.bounce = 0;
@@ -498,7 +449,7 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
         let mut live = [false; N];
         for i in 0..N {
             let alive = self.weight[i] != 0.0;
-            let hit = self.cur.hit(i);
+            let hit = self.packet.hit(i);
             live[i] = alive & hit;
             let miss = alive & !hit;
             for a in 0..3 {
@@ -515,7 +466,7 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
         let [na, nb, nc] = &self.corner_normals;
         let [ca, cb, cc] = &self.corner_colors;
         for i in 0..N {
-            let (u, v) = (self.cur.u[i], self.cur.v[i]);
+            let (u, v) = (self.packet.u[i], self.packet.v[i]);
             let w = 1.0 - u - v;
             // The operations of `Vec3`, component by component, in its
             // order: the colors stay those of the reference renderer.
@@ -538,7 +489,7 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
             let facing_away = n[0] * d[0] + n[1] * d[1] + n[2] * d[2] > 0.0;
             for a in 0..3 {
                 let n = if facing_away { -n[a] } else { n[a] };
-                let point = self.origins.0[a][i] + d[a] * self.cur.t[i];
+                let point = self.origins.0[a][i] + d[a] * self.packet.t[i];
                 self.points.0[a][i] = if live[i] { point } else { 0.0 };
                 self.normals.0[a][i] = if live[i] { n } else { Vec3::Y[a] };
                 self.albedo.0[a][i] = if live[i] { color[a] } else { 0.0 };
@@ -547,7 +498,7 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
         }
         if self.bounce < s.reflections {
             for i in 0..N {
-                if live[i] && s.reflective.matches(self.cur.id[i], self.albedo.lane(i)) {
+                if live[i] && s.reflective.matches(self.packet.id[i], self.albedo.lane(i)) {
                     self.mirror[i] = s.reflectance;
                 }
             }
@@ -560,7 +511,7 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
                     // when the triangle straddles cells.
                     let id = ctx.top.voxel_at(self.points.lane(i));
                     self.albedo
-                        .set(i, voxel_color(id.unwrap_or(self.cur.voxel[i])));
+                        .set(i, voxel_color(id.unwrap_or(self.packet.voxel[i])));
                 }
             }
         }
@@ -577,10 +528,10 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
         // the same one.
         let mut last: Option<crate::accel::VoxelRef<'_>> = None;
         for i in self.lane..N {
-            if self.weight[i] == 0.0 || !self.cur.hit(i) {
+            if self.weight[i] == 0.0 || !self.packet.hit(i) {
                 continue;
             }
-            let id = self.cur.voxel[i];
+            let id = self.packet.voxel[i];
             if last.as_ref().is_none_or(|v| v.id != id) {
                 match source.voxel(id) {
                     Some(v) => last = Some(v),
@@ -591,7 +542,7 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
                 }
             }
             let vox = last.as_ref().expect("just set");
-            let corners = vox.triangles[self.cur.tri[i] as usize];
+            let corners = vox.triangles[self.packet.tri[i] as usize];
             for (k, &c) in corners.iter().enumerate() {
                 let n = vox.normals[c as usize];
                 for a in 0..3 {
@@ -613,7 +564,7 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
     /// pass only costs, hence [`Ctx::scattered`] (`scripts/bench-kernel`).
     #[inline(always)]
     fn prefetch_surfaces(&self, source: &dyn VoxelSource) {
-        let cur = &self.cur;
+        let cur = &self.packet;
         let mut last: Option<crate::accel::VoxelRef<'_>> = None;
         for i in self.lane..N {
             if self.weight[i] == 0.0 || !cur.hit(i) {
