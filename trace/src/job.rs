@@ -564,20 +564,20 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
     /// pass only costs, hence [`Ctx::scattered`] (`scripts/bench-kernel`).
     #[inline(always)]
     fn prefetch_surfaces(&self, source: &dyn VoxelSource) {
-        let cur = &self.packet;
+        let hits = &self.packet;
         let mut last: Option<crate::accel::VoxelRef<'_>> = None;
         for i in self.lane..N {
-            if self.weight[i] == 0.0 || !cur.hit(i) {
+            if self.weight[i] == 0.0 || !hits.hit(i) {
                 continue;
             }
-            let id = cur.voxel[i];
+            let id = hits.voxel[i];
             if last.as_ref().is_none_or(|v| v.id != id) {
                 last = source.voxel(id);
             }
             let Some(vox) = &last else {
                 break;
             };
-            vox.prefetch_surface(cur.tri[i]);
+            vox.prefetch_surface(hits.tri[i]);
         }
     }
 
