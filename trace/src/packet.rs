@@ -847,8 +847,9 @@ impl<const N: usize> Boxes<'_, N> {
 /// The box test of a packet whose lanes agree on the sign of every
 /// direction component, in one voxel's fixed-point frame: along axis `a`,
 /// lane `i` meets the plane of quantum `q` at `q * scale[a][i] +
-/// offset`, one multiply and one add per plane instead of dequantizing
-/// the node and a subtract, a multiply and the widening per plane.
+/// offset`, one multiply and one add per plane (fused where the kernel
+/// has FMA, [`fused_planes`]) instead of dequantizing the node and a
+/// subtract, a multiply and the widening per plane.
 ///
 /// `near` and `far` are the offsets lowered and raised by [`MARGIN`] of
 /// the largest magnitude in the sum (the voxel's origin, the ray's origin
@@ -949,8 +950,17 @@ impl<const N: usize> FrameRays<N> {
     fn clip(&self, near: [f32; 3], far: [f32; 3], t0: &mut [f32; N], t1: &mut [f32; N]) {
         for a in 0..3 {
             for i in 0..N {
-                let lo = near[a] * self.scale[a][i] + self.near[a][i];
-                let hi = far[a] * self.scale[a][i] + self.far[a][i];
+                let (lo, hi) = if fused_planes::<N>() {
+                    (
+                        near[a].mul_add(self.scale[a][i], self.near[a][i]),
+                        far[a].mul_add(self.scale[a][i], self.far[a][i]),
+                    )
+                } else {
+                    (
+                        near[a] * self.scale[a][i] + self.near[a][i],
+                        far[a] * self.scale[a][i] + self.far[a][i],
+                    )
+                };
                 t0[i] = if lo > t0[i] { lo } else { t0[i] };
                 t1[i] = if hi < t1[i] { hi } else { t1[i] };
             }
@@ -1016,6 +1026,16 @@ impl<const N: usize> FrameNode<'_, N> {
         self.rays.clip(near, far, &mut t0, &mut t1);
         (t0, t1)
     }
+}
+
+/// Whether [`FrameRays::clip`] computes its planes with fused
+/// multiply-adds: one instruction in place of two in the hottest loop
+/// (`scripts/bench-kernel`). Packets of more than 8 lanes run only in the
+/// AVX2 and AVX-512 kernels, whose CPUs have FMA ([`crate::render::Isa`]);
+/// the portable kernel's 8 would call the C library's `fmaf`. The margin of
+/// [`FrameRays`] bounds the rounding of either form.
+const fn fused_planes<const N: usize>() -> bool {
+    N > 8
 }
 
 /// Stack entries of a voxel's search: a wide node index, or a leaf as

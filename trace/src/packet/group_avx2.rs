@@ -30,7 +30,7 @@ use std::arch::x86_64::*;
 /// # Safety
 /// The CPU must have AVX2.
 #[inline]
-#[target_feature(enable = "avx2")]
+#[target_feature(enable = "avx2,fma")]
 pub(super) unsafe fn subtree<const N: usize>(
     p: &mut Packet<N>,
     shear: &Shear<N>,
@@ -50,7 +50,7 @@ pub(super) unsafe fn subtree<const N: usize>(
 
 /// [`subtree`] with `H` vectors: at most `2 * H` lanes.
 #[inline]
-#[target_feature(enable = "avx2")]
+#[target_feature(enable = "avx2,fma")]
 unsafe fn search<const N: usize, const H: usize>(
     p: &mut Packet<N>,
     shear: &Shear<N>,
@@ -157,7 +157,7 @@ impl<const H: usize> GroupRays<H> {
     /// where one is, a pair ignores it and its partner, so the group may
     /// enter a box the packet would cull, never the reverse.
     #[inline]
-    #[target_feature(enable = "avx2")]
+    #[target_feature(enable = "avx2,fma")]
     unsafe fn children(&self, node: &WideNode) -> u32 {
         let base = node as *const WideNode as *const u8;
         // The four children's quanta at `at`, as floats, in both halves of
@@ -174,9 +174,8 @@ impl<const H: usize> GroupRays<H> {
         }
         let mut hit = 0;
         for h in 0..H {
-            let plane = |q: __m256, scale: __m256, offset: __m256| {
-                _mm256_add_ps(_mm256_mul_ps(q, scale), offset)
-            };
+            let plane =
+                |q: __m256, scale: __m256, offset: __m256| _mm256_fmadd_ps(q, scale, offset);
             let lo = [0, 1, 2].map(|a| plane(near[a], self.scale[a][h], self.near[a][h]));
             let hi = [0, 1, 2].map(|a| plane(far[a], self.scale[a][h], self.far[a][h]));
             let t0 = _mm256_max_ps(
@@ -201,7 +200,7 @@ fn spread_lanes(lanes: u32) -> u32 {
 
 /// A bit for each position of a comparison's result, set where it holds.
 #[inline]
-#[target_feature(enable = "avx2")]
+#[target_feature(enable = "avx2,fma")]
 unsafe fn bits(cmp: __m256) -> u32 {
     _mm256_movemask_ps(cmp) as u32
 }
@@ -210,7 +209,7 @@ unsafe fn bits(cmp: __m256) -> u32 {
 /// from `first`: blocks the packet's lanes they block; the group's bits of
 /// those lanes.
 #[inline]
-#[target_feature(enable = "avx2")]
+#[target_feature(enable = "avx2,fma")]
 unsafe fn leaf<const N: usize, const H: usize>(
     p: &mut Packet<N>,
     rays: &GroupRays<H>,
@@ -275,7 +274,7 @@ unsafe fn leaf<const N: usize, const H: usize>(
 /// position whose triangle the packet would accept for its lane, and the
 /// barycentrics v, w and determinant of every position.
 #[inline]
-#[target_feature(enable = "avx2")]
+#[target_feature(enable = "avx2,fma")]
 unsafe fn triangles<const H: usize>(
     rays: &GroupRays<H>,
     h: usize,
