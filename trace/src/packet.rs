@@ -91,7 +91,8 @@ pub struct Packet<const N: usize> {
     /// ORIGINAL triangle id of the nearest hit, `u32::MAX` for none.
     pub id: [u32; N],
     /// Voxel and voxel-local triangle of the hit, and the barycentric
-    /// weights of its second and third corners (for shading).
+    /// weights of its second and third corners (for shading; a shadow
+    /// packet leaves them as they were: nothing shades its hits).
     pub voxel: [u32; N],
     pub tri: [u32; N],
     pub u: [f32; N],
@@ -264,8 +265,12 @@ impl<const N: usize> Packet<N> {
         let o = occluder;
         // No voxel or voxel-local triangle: shadow lanes need neither.
         match AnyShear::new(self) {
-            AnyShear::Uniform(s) => self.triangle(&s, &o.corners, o.id, u32::MAX, u32::MAX),
-            AnyShear::Mixed(s) => self.triangle(&s, &o.corners, o.id, u32::MAX, u32::MAX),
+            AnyShear::Uniform(s) => {
+                self.triangle::<_, true>(&s, &o.corners, o.id, u32::MAX, u32::MAX)
+            }
+            AnyShear::Mixed(s) => {
+                self.triangle::<_, true>(&s, &o.corners, o.id, u32::MAX, u32::MAX)
+            }
         }
         self.all_blocked()
     }
@@ -359,10 +364,12 @@ impl<const N: usize> Packet<N> {
     }
 
     /// Keeps, per lane, the better of the current hit and the candidate
-    /// whose scaled barycentrics are (`u`, `v`, `w`) and distance `tt`.
+    /// whose scaled barycentrics are (`u`, `v`, `w`) and distance `tt`. A
+    /// shadow packet (`ANY`, [`Self::any_hit`]) blocks the lane and keeps no
+    /// barycentrics: one division a lane less in its every triangle test.
     #[inline(always)]
     #[allow(clippy::too_many_arguments)]
-    fn accept(
+    fn accept<const ANY: bool>(
         &mut self,
         u: &[f32; N],
         v: &[f32; N],
@@ -372,7 +379,6 @@ impl<const N: usize> Packet<N> {
         voxel: u32,
         tri: u32,
     ) {
-        let any_hit = self.any_hit;
         for i in 0..N {
             let neg = (u[i] < 0.0) | (v[i] < 0.0) | (w[i] < 0.0);
             let pos = (u[i] > 0.0) | (v[i] > 0.0) | (w[i] > 0.0);
@@ -381,14 +387,16 @@ impl<const N: usize> Packet<N> {
             let inside = !(neg & pos) & (det != 0.0) & (t > self.tmin) & t.is_finite();
             let better = (t < self.t[i]) | ((t == self.t[i]) & (id < self.id[i]));
             let take = inside & better;
-            let inv_det = 1.0 / det;
-            let t_new = if any_hit { f32::NEG_INFINITY } else { t };
+            let t_new = if ANY { f32::NEG_INFINITY } else { t };
             self.t[i] = if take { t_new } else { self.t[i] };
             self.id[i] = if take { id } else { self.id[i] };
             self.voxel[i] = if take { voxel } else { self.voxel[i] };
             self.tri[i] = if take { tri } else { self.tri[i] };
-            self.u[i] = if take { v[i] * inv_det } else { self.u[i] };
-            self.v[i] = if take { w[i] * inv_det } else { self.v[i] };
+            if !ANY {
+                let inv_det = 1.0 / det;
+                self.u[i] = if take { v[i] * inv_det } else { self.u[i] };
+                self.v[i] = if take { w[i] * inv_det } else { self.v[i] };
+            }
         }
     }
 
@@ -396,7 +404,7 @@ impl<const N: usize> Packet<N> {
     /// voxel-local `tri` of voxel `voxel`): tested, and kept where it is
     /// the better hit.
     #[inline(always)]
-    fn triangle<S: TriangleTest<N>>(
+    fn triangle<S: TriangleTest<N>, const ANY: bool>(
         &mut self,
         shear: &S,
         corners: &[[f32; 3]; 3],
@@ -405,14 +413,15 @@ impl<const N: usize> Packet<N> {
         tri: u32,
     ) {
         let (u, v, w, t) = shear.test(self, corners);
-        self.accept(&u, &v, &w, &t, id, voxel, tri);
+        self.accept::<ANY>(&u, &v, &w, &t, id, voxel, tri);
     }
 
     /// Nearest hits (or occlusion) of every lane in one voxel's BVH,
     /// searched only within each lane's interval `seg` (the lane's part of
-    /// the voxel's content box).
+    /// the voxel's content box). `ANY` is [`Self::any_hit`], fixed at
+    /// compile time so that the shadow packets' search is code of its own.
     #[inline(always)]
-    fn voxel<S: TriangleTest<N>>(
+    fn voxel<S: TriangleTest<N>, const ANY: bool>(
         &mut self,
         shear: &S,
         vox: &PreparedVoxel,
@@ -428,7 +437,7 @@ impl<const N: usize> Packet<N> {
         // shadow packets, whose lanes part more, gain from the frame
         // (`docs/benchmarks.md`).
         let sparse = N == 16 && self.quad;
-        let frame = if sparse || (N > 16 && !self.any_hit) {
+        let frame = if sparse || (N > 16 && !ANY) {
             None
         } else {
             FrameRays::new(self, &vox.frame)
@@ -446,10 +455,10 @@ impl<const N: usize> Packet<N> {
         // packet down, and the hand-over's tests would cost the other
         // packets too (`scripts/bench-kernel`).
         match (sparse, groups) {
-            (true, true) => self.search::<S, LaneMask, true>(shear, frame, vox, seg),
-            (true, false) => self.search::<S, LaneMask, false>(shear, frame, vox, seg),
-            (false, true) => self.search::<S, AllLanes, true>(shear, frame, vox, seg),
-            (false, false) => self.search::<S, AllLanes, false>(shear, frame, vox, seg),
+            (true, true) => self.search::<S, LaneMask, true, ANY>(shear, frame, vox, seg),
+            (true, false) => self.search::<S, LaneMask, false, ANY>(shear, frame, vox, seg),
+            (false, true) => self.search::<S, AllLanes, true, ANY>(shear, frame, vox, seg),
+            (false, false) => self.search::<S, AllLanes, false, ANY>(shear, frame, vox, seg),
         }
     }
 
@@ -457,7 +466,7 @@ impl<const N: usize> Packet<N> {
     /// stands for, and its boxes tested in the voxel's `frame` where there
     /// is one.
     #[inline(always)]
-    fn search<S: TriangleTest<N>, L: EntryLanes<N>, const HAND_OFF: bool>(
+    fn search<S: TriangleTest<N>, L: EntryLanes<N>, const HAND_OFF: bool, const ANY: bool>(
         &mut self,
         shear: &S,
         frame: Option<&FrameRays<N>>,
@@ -487,7 +496,7 @@ impl<const N: usize> Packet<N> {
             };
             next.0 = NONE;
             if entry & LEAF != 0 {
-                if self.leaf(shear, vox, entry) {
+                if self.leaf::<S, ANY>(shear, vox, entry) {
                     return;
                 }
                 continue;
@@ -518,17 +527,13 @@ impl<const N: usize> Packet<N> {
                     }
                     continue;
                 }
-                if let Some(e) = self.child_entry(shear, vox, node, c) {
-                    let key = if self.any_hit {
-                        0.0
-                    } else {
-                        boxes.key(c, dir0)
-                    };
+                if let Some(e) = self.child_entry::<S, ANY>(shear, vox, node, c) {
+                    let key = if ANY { 0.0 } else { boxes.key(c, dir0) };
                     hits[n] = (key, (e, child_lanes));
                     n += 1;
                 }
             }
-            if !self.any_hit {
+            if !ANY {
                 sort_far_first(&mut hits[..n]);
             }
             if n > 0 {
@@ -589,14 +594,19 @@ impl<const N: usize> Packet<N> {
     /// Every lane against the triangles of the leaf `entry`; whether a
     /// shadow packet is now wholly blocked (nothing left to search).
     #[inline(always)]
-    fn leaf<S: TriangleTest<N>>(&mut self, shear: &S, vox: &PreparedVoxel, entry: u32) -> bool {
-        self.triangles(shear, vox, entry & 0x00FF_FFFF, (entry >> 24) & 0x7F);
-        self.any_hit && self.all_blocked()
+    fn leaf<S: TriangleTest<N>, const ANY: bool>(
+        &mut self,
+        shear: &S,
+        vox: &PreparedVoxel,
+        entry: u32,
+    ) -> bool {
+        self.triangles::<S, ANY>(shear, vox, entry & 0x00FF_FFFF, (entry >> 24) & 0x7F);
+        ANY && self.all_blocked()
     }
 
     /// Every lane against the voxel's triangles `first..first + count`.
     #[inline(always)]
-    fn triangles<S: TriangleTest<N>>(
+    fn triangles<S: TriangleTest<N>, const ANY: bool>(
         &mut self,
         shear: &S,
         vox: &PreparedVoxel,
@@ -605,7 +615,7 @@ impl<const N: usize> Packet<N> {
     ) {
         for k in first..first + count {
             let (corners, id) = (&vox.corners[k as usize], vox.ids[k as usize]);
-            self.triangle(shear, corners, id, vox.id, k);
+            self.triangle::<S, ANY>(shear, corners, id, vox.id, k);
         }
     }
 
@@ -614,7 +624,7 @@ impl<const N: usize> Packet<N> {
     /// of over 16 M triangles; never built, kept exact) is tested at once
     /// instead.
     #[inline(always)]
-    fn child_entry<S: TriangleTest<N>>(
+    fn child_entry<S: TriangleTest<N>, const ANY: bool>(
         &mut self,
         shear: &S,
         vox: &PreparedVoxel,
@@ -627,7 +637,7 @@ impl<const N: usize> Packet<N> {
         } else if first <= 0x00FF_FFFF {
             Some(LEAF | (kind << 24) | first)
         } else {
-            self.triangles(shear, vox, first, kind);
+            self.triangles::<S, ANY>(shear, vox, first, kind);
             None
         }
     }
@@ -1514,8 +1524,14 @@ impl<const N: usize> Traversal<N> {
                     // their own voxels (the nearest hit is a minimum over
                     // all of them either way).
                     match &shear {
-                        AnyShear::Uniform(s) => packet.voxel(s, &vox, (&t0, &t1)),
-                        AnyShear::Mixed(s) => packet.voxel(s, &vox, (&t0, &t1)),
+                        AnyShear::Uniform(s) if packet.any_hit => {
+                            packet.voxel::<_, true>(s, &vox, (&t0, &t1))
+                        }
+                        AnyShear::Uniform(s) => packet.voxel::<_, false>(s, &vox, (&t0, &t1)),
+                        AnyShear::Mixed(s) if packet.any_hit => {
+                            packet.voxel::<_, true>(s, &vox, (&t0, &t1))
+                        }
+                        AnyShear::Mixed(s) => packet.voxel::<_, false>(s, &vox, (&t0, &t1)),
                     }
                     if packet.any_hit && packet.all_blocked() {
                         self.stack.clear();

@@ -354,9 +354,5 @@ unsafe fn leaf(
     if take == 0 {
         return 0;
     }
-    let (mut vs, mut ws, mut ds) = ([0f32; 16], [0f32; 16], [0f32; 16]);
-    _mm512_storeu_ps(vs.as_mut_ptr(), v);
-    _mm512_storeu_ps(ws.as_mut_ptr(), w);
-    _mm512_storeu_ps(ds.as_mut_ptr(), det);
-    block_lanes(p, vox, first, lane_of, take, &vs, &ws, &ds)
+    block_lanes(p, vox, first, lane_of, take)
 }

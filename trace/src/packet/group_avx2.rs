@@ -248,31 +248,25 @@ unsafe fn leaf<const N: usize, const H: usize>(
     let [_, _, _, c8] = columns(5);
     let comp = [c0, c1, c2, c3, c4, c5, c6, c7, c8];
     let valid = spread_lanes(lanes) & (((1u32 << count) - 1) * 0x1111);
-    let mut take = 0;
-    // Half h's positions at 8h: position 4r + j of the group at index
+    // Half h's positions at 8h: position 4r + j of the group at bit
     // 4r + j.
-    let (mut vs, mut ws, mut ds) = ([0f32; 16], [0f32; 16], [0f32; 16]);
+    let mut take = 0;
     for h in 0..H {
         let valid = (valid >> (8 * h)) & 0xFF;
         if valid == 0 {
             continue;
         }
-        let (inside, v, w, det) = triangles(rays, h, &comp, valid);
-        take |= inside << (8 * h);
-        _mm256_storeu_ps(vs.as_mut_ptr().add(8 * h), v);
-        _mm256_storeu_ps(ws.as_mut_ptr().add(8 * h), w);
-        _mm256_storeu_ps(ds.as_mut_ptr().add(8 * h), det);
+        take |= triangles(rays, h, &comp, valid) << (8 * h);
     }
     if take == 0 {
         return 0;
     }
-    block_lanes(p, vox, first, lane_of, take, &vs, &ws, &ds)
+    block_lanes(p, vox, first, lane_of, take)
 }
 
 /// The watertight test of half `h`'s two lanes against a leaf's
 /// triangles (`comp`, transposed), positions `valid`: a bit for each
-/// position whose triangle the packet would accept for its lane, and the
-/// barycentrics v, w and determinant of every position.
+/// position whose triangle the packet would accept for its lane.
 #[inline]
 #[target_feature(enable = "avx2,fma")]
 unsafe fn triangles<const H: usize>(
@@ -280,7 +274,7 @@ unsafe fn triangles<const H: usize>(
     h: usize,
     comp: &[__m256; 9],
     valid: u32,
-) -> (u32, __m256, __m256, __m256) {
+) -> u32 {
     let k = rays.k;
     let (sx, sy, sz) = (rays.sx[h], rays.sy[h], rays.sz[h]);
     // Corner `corner`'s component on the shear's axis `slot`, relative to
@@ -353,5 +347,5 @@ unsafe fn triangles<const H: usize>(
             _mm256_set1_ps(f32::INFINITY),
         ))
         & bits(_mm256_cmp_ps::<_CMP_LT_OQ>(t, rays.t[h]));
-    (inside & valid, v, w, det)
+    inside & valid
 }

@@ -120,20 +120,16 @@ pub(super) unsafe fn walk<const N: usize, G: GroupTests<N>>(
 
 /// Blocks each lane of the group that a triangle of the leaf from `first`
 /// blocks: bit `4r + j` of `take` is lane `lane_of[r]` against triangle
-/// `first + j`, with barycentrics `v`, `w` and determinant `det` at index
-/// `4r + j`; the packet keeps the first in the leaf's order, as its own
-/// loop does. The group's bits of the lanes blocked.
+/// `first + j`; the packet keeps the first in the leaf's order, as its own
+/// loop does (and, like it, no barycentrics). The group's bits of the
+/// lanes blocked.
 #[inline(always)]
-#[allow(clippy::too_many_arguments)]
 pub(super) fn block_lanes<const N: usize>(
     p: &mut Packet<N>,
     vox: &PreparedVoxel,
     first: usize,
     lane_of: &[usize; 4],
     take: u32,
-    v: &[f32; 16],
-    w: &[f32; 16],
-    det: &[f32; 16],
 ) -> u32 {
     let mut blocked = 0u32;
     for (r, &lane) in lane_of.iter().enumerate() {
@@ -142,14 +138,10 @@ pub(super) fn block_lanes<const N: usize>(
             continue;
         }
         let j = nibble.trailing_zeros() as usize;
-        let i = 4 * r + j;
-        let inv_det = 1.0 / det[i];
         p.t[lane] = f32::NEG_INFINITY;
         p.id[lane] = vox.ids[first + j];
         p.voxel[lane] = vox.id;
         p.tri[lane] = (first + j) as u32;
-        p.u[lane] = v[i] * inv_det;
-        p.v[lane] = w[i] * inv_det;
         blocked |= 1 << r;
     }
     blocked
