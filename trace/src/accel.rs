@@ -557,6 +557,13 @@ impl PreparedVoxel {
         }
     }
 
+    /// Starts loading local triangle `tri`'s vertex indices, the first
+    /// link of [`Self::prefetch_surface`]'s chain.
+    #[inline(always)]
+    pub fn prefetch_indices(&self, tri: u32) {
+        prefetch(self.triangles.as_ptr().wrapping_add(tri as usize) as *const u8);
+    }
+
     /// Starts loading what shading reads of local triangle `tri`: its
     /// vertex indices are read now, its corners' normals and colors
     /// prefetched. A packet's hits are looked up one lane after

@@ -562,10 +562,25 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
     /// traversal did not read); started together, they wait together.
     /// Where rays stay together their hits are mostly cached and the extra
     /// pass only costs, hence [`Ctx::scattered`] (`scripts/bench-kernel`).
+    /// Every lane's vertex indices are requested before the first is read,
+    /// so that no lane's read holds the next lanes' requests back.
     #[inline(always)]
     fn prefetch_surfaces(&self, source: &dyn VoxelSource) {
         let hits = &self.packet;
         let mut last: Option<crate::accel::VoxelRef<'_>> = None;
+        for i in self.lane..N {
+            if self.weight[i] == 0.0 || !hits.hit(i) {
+                continue;
+            }
+            let id = hits.voxel[i];
+            if last.as_ref().is_none_or(|v| v.id != id) {
+                last = source.voxel(id);
+            }
+            let Some(vox) = &last else {
+                break;
+            };
+            vox.prefetch_indices(hits.tri[i]);
+        }
         for i in self.lane..N {
             if self.weight[i] == 0.0 || !hits.hit(i) {
                 continue;
