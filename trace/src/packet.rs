@@ -1232,10 +1232,14 @@ pub struct Shear<const N: usize> {
 
 /// The shear for a packet whose lanes need different permutations
 /// (reflection rays, packets across a diagonal): each lane picks its
-/// components with selects, still in SIMD.
+/// components with bit masks, still in SIMD.
 #[derive(Clone, Copy, Debug)]
 pub struct MixedShear<const N: usize> {
-    k: [[u8; N]; 3],
+    /// `pick[slot][axis][i]`: all ones where lane `i`'s permutation puts
+    /// `axis` in `slot`, else zero. Masks rather than a per-lane index:
+    /// LLVM turns an indexed pick into a gather of scalar loads, which
+    /// made these packets' triangle tests several times slower.
+    pick: [[[u32; N]; 3]; 3],
     /// The origin's components in each lane's permuted order.
     o: [[f32; N]; 3],
     sx: [f32; N],
@@ -1305,7 +1309,7 @@ impl<const N: usize> AnyShear<N> {
             return AnyShear::Uniform(s);
         }
         let mut m = MixedShear {
-            k: [[0; N]; 3],
+            pick: [[[0; N]; 3]; 3],
             o: [[0.0; N]; 3],
             sx: [0.0; N],
             sy: [0.0; N],
@@ -1313,10 +1317,8 @@ impl<const N: usize> AnyShear<N> {
         };
         for i in 0..N {
             let (kx, ky, kz) = permutation(lane(i));
-            m.k[0][i] = kx as u8;
-            m.k[1][i] = ky as u8;
-            m.k[2][i] = kz as u8;
             for (slot, k) in [kx, ky, kz].into_iter().enumerate() {
+                m.pick[slot][k][i] = u32::MAX;
                 m.o[slot][i] = p.org[k][i];
             }
             m.sz[i] = 1.0 / p.dir[kz][i];
@@ -1411,17 +1413,14 @@ impl<const N: usize> TriangleTest<N> for Shear<N> {
 impl<const N: usize> TriangleTest<N> for MixedShear<N> {
     #[inline(always)]
     fn test(&self, _p: &Packet<N>, c: &[[f32; 3]; 3]) -> ([f32; N], [f32; N], [f32; N], [f32; N]) {
-        let pick = |q: &[f32; 3], k: u8| {
-            if k == 0 {
-                q[0]
-            } else if k == 1 {
-                q[1]
-            } else {
-                q[2]
-            }
+        // Exactly one mask of the three is set: the component itself.
+        let pick = |corner: usize, slot: usize, i: usize| {
+            let [x, y, z] = c[corner].map(f32::to_bits);
+            let m = &self.pick[slot];
+            f32::from_bits((x & m[0][i]) | (y & m[1][i]) | (z & m[2][i]))
         };
         core(
-            |i, corner, slot| pick(&c[corner], self.k[slot][i]) - self.o[slot][i],
+            |i, corner, slot| pick(corner, slot, i) - self.o[slot][i],
             &self.sx,
             &self.sy,
             &self.sz,
