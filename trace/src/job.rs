@@ -160,6 +160,9 @@ pub(crate) struct PacketJob<const N: usize, const BW: u32> {
     /// repeat its last pixel) and whether it is the lane's own.
     px: [(u32, u32); N],
     own: [bool; N],
+    /// Whether every lane's pixel is its own (all blocks but those on the
+    /// region's right and bottom edges).
+    whole: bool,
     stage: Stage,
     trav: Traversal<N>,
     /// The packet being traversed: primary, shadow or reflection; once
@@ -198,6 +201,7 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
         let mut job = PacketJob {
             px: [(0, 0); N],
             own: [false; N],
+            whole: false,
             stage: Stage::Primary,
             trav: Traversal::default(),
             packet: Packet::new(&[Vec3::ZERO; N], &[Vec3::X; N], 0.0, 0.0),
@@ -233,6 +237,7 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
             self.own[i] = x == cx && y == cy;
             self.cur_dirs.set(i, ctx.basis.direction(x0 + cx, y0 + cy));
         }
+        self.whole = self.own.iter().all(|&own| own);
         self.origins = Axes::splat(ctx.basis.eye);
         self.packet = Packet::from_axes(&self.origins.0, &self.cur_dirs.0, 0.0, f32::INFINITY);
         self.packet.quad = ctx.quad;
@@ -386,22 +391,20 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
         let p = &self.packet;
         stats.child_hits += u64::from(p.child_hits);
         stats.child_lanes += u64::from(p.child_lanes);
+        // A lane that hit nothing still has the packet's far limit
+        // (infinity) and no id: what the region holds where nothing is hit.
+        self.write_own(out.depth, out.width, &p.t);
+        self.write_own(out.primid, out.width, &p.id);
+        let (mut rays, mut hits) = (0u64, 0u64);
         for i in 0..N {
-            if !self.own[i] {
-                continue;
-            }
-            let (x, y) = self.px[i];
-            let k = (y * out.width + x) as usize;
-            stats.primary_rays += 1;
-            if p.hit(i) {
-                out.depth[k] = p.t[i];
-                out.primid[k] = p.id[i];
-                stats.hits += 1;
-            }
-            if !ctx.settings.shade && ctx.grey {
-                let t = if p.hit(i) { p.t[i] } else { f32::INFINITY };
-                out.rgba[k] = depth_grey(t, ctx.settings.scene_diagonal);
-            }
+            rays += self.own[i] as u64;
+            hits += (self.own[i] & p.hit(i)) as u64;
+        }
+        stats.primary_rays += rays;
+        stats.hits += hits;
+        if !ctx.settings.shade && ctx.grey {
+            let grey = std::array::from_fn(|i| depth_grey(p.t[i], ctx.settings.scene_diagonal));
+            self.write_own(out.rgba, out.width, &grey);
         }
         if !ctx.settings.shade {
             self.stage = Stage::Done;
@@ -410,13 +413,7 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
         // A block of sky takes the background without the shading stages
         // (from afar most blocks are sky).
         if !(0..N).any(|i| p.hit(i)) {
-            let sky = rgba(BACKGROUND);
-            for i in 0..N {
-                if self.own[i] {
-                    let (x, y) = self.px[i];
-                    out.rgba[(y * out.width + x) as usize] = sky;
-                }
-            }
+            self.write_own(out.rgba, out.width, &[rgba(BACKGROUND); N]);
             self.stage = Stage::Done;
             return;
         }
@@ -596,18 +593,42 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
         }
     }
 
+    /// Writes each lane's value to its own pixel of `dst` (a region
+    /// `width` pixels a row): a whole block row by row, others lane by
+    /// lane.
+    #[inline(always)]
+    fn write_own<T: Copy>(&self, dst: &mut [T], width: u32, values: &[T; N]) {
+        if self.whole {
+            let bw = BW as usize;
+            for (r, row) in values.chunks_exact(bw).enumerate() {
+                let (x, y) = self.px[r * bw];
+                let at = (y * width + x) as usize;
+                dst[at..at + bw].copy_from_slice(row);
+            }
+            return;
+        }
+        for i in 0..N {
+            if self.own[i] {
+                let (x, y) = self.px[i];
+                dst[(y * width + x) as usize] = values[i];
+            }
+        }
+    }
+
     #[inline(always)]
     fn shadow_done(&mut self, ctx: &Ctx, out: &mut Region, stats: &mut FrameStats) {
         let mut lit = [true; N];
+        // Counted here and added once: increments of `stats` lane by lane
+        // wait on one another through memory.
+        let (mut rays, mut occluded) = (0u64, 0u64);
         for i in 0..N {
-            if self.weight[i] > 0.0 {
-                lit[i] = !self.packet.occluded(i);
-                if self.own[i] {
-                    stats.shadow_rays += 1;
-                    stats.occluded += !lit[i] as u64;
-                }
-            }
+            let live = self.weight[i] > 0.0;
+            lit[i] = !(live & self.packet.occluded(i));
+            rays += (live & self.own[i]) as u64;
+            occluded += (live & self.own[i] & !lit[i]) as u64;
         }
+        stats.shadow_rays += rays;
+        stats.occluded += occluded;
         self.light(ctx, &lit, out, stats);
     }
 
@@ -639,16 +660,13 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
             any_mirror |= self.weight[i] > 0.0;
         }
         if !any_mirror {
-            let mut pixels = [[0u8; 4]; N];
+            // Packed in a word a lane, a loop LLVM vectorizes.
+            let mut packed = [0u32; N];
             for i in 0..N {
-                pixels[i] = rgba(self.color.lane(i));
+                let channel = |a: usize| to_u8(self.color.0[a][i]) as u32;
+                packed[i] = channel(0) | channel(1) << 8 | channel(2) << 16 | 0xFF00_0000;
             }
-            for i in 0..N {
-                if self.own[i] {
-                    let (x, y) = self.px[i];
-                    out.rgba[(y * out.width + x) as usize] = pixels[i];
-                }
-            }
+            self.write_own(out.rgba, out.width, &packed.map(u32::to_le_bytes));
             self.stage = Stage::Done;
             return;
         }
