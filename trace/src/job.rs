@@ -14,7 +14,7 @@
 // shape LLVM vectorizes.
 #![allow(clippy::needless_range_loop)]
 
-use crate::accel::{TopLevel, VoxelSource};
+use crate::accel::{PreparedVoxel, TopLevel, VoxelRef, VoxelSource};
 use crate::camera::CameraBasis;
 use crate::clock;
 use crate::packet::{Occluder, Packet, Step, Traversal};
@@ -523,7 +523,7 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
     fn read_corners(&mut self, source: &dyn VoxelSource) -> Option<u32> {
         // The voxel of the last lane read: neighbouring lanes mostly hit
         // the same one.
-        let mut last: Option<crate::accel::VoxelRef<'_>> = None;
+        let mut last: Option<VoxelRef<'_>> = None;
         for i in self.lane..N {
             if self.weight[i] == 0.0 || !self.packet.hit(i) {
                 continue;
@@ -563,8 +563,17 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
     /// so that no lane's read holds the next lanes' requests back.
     #[inline(always)]
     fn prefetch_surfaces(&self, source: &dyn VoxelSource) {
+        self.each_live_hit(source, |vox, tri| vox.prefetch_indices(tri));
+        self.each_live_hit(source, |vox, tri| vox.prefetch_surface(tri));
+    }
+
+    /// Calls `f` with the voxel and voxel-local triangle of each live
+    /// lane's hit from lane `self.lane` on, up to the first lane whose
+    /// voxel `source` lacks.
+    #[inline(always)]
+    fn each_live_hit(&self, source: &dyn VoxelSource, mut f: impl FnMut(&PreparedVoxel, u32)) {
         let hits = &self.packet;
-        let mut last: Option<crate::accel::VoxelRef<'_>> = None;
+        let mut last: Option<VoxelRef<'_>> = None;
         for i in self.lane..N {
             if self.weight[i] == 0.0 || !hits.hit(i) {
                 continue;
@@ -576,20 +585,7 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
             let Some(vox) = &last else {
                 break;
             };
-            vox.prefetch_indices(hits.tri[i]);
-        }
-        for i in self.lane..N {
-            if self.weight[i] == 0.0 || !hits.hit(i) {
-                continue;
-            }
-            let id = hits.voxel[i];
-            if last.as_ref().is_none_or(|v| v.id != id) {
-                last = source.voxel(id);
-            }
-            let Some(vox) = &last else {
-                break;
-            };
-            vox.prefetch_surface(hits.tri[i]);
+            f(vox, hits.tri[i]);
         }
     }
 
