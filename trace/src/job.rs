@@ -656,13 +656,8 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
             any_mirror |= self.weight[i] > 0.0;
         }
         if !any_mirror {
-            // Packed in a word a lane, a loop LLVM vectorizes.
-            let mut packed = [0u32; N];
-            for i in 0..N {
-                let channel = |a: usize| to_u8(self.color.0[a][i]) as u32;
-                packed[i] = channel(0) | channel(1) << 8 | channel(2) << 16 | 0xFF00_0000;
-            }
-            self.write_own(out.rgba, out.width, &packed.map(u32::to_le_bytes));
+            let pixels = std::array::from_fn(|i| rgba(self.color.lane(i)));
+            self.write_own(out.rgba, out.width, &pixels);
             self.stage = Stage::Done;
             return;
         }

@@ -578,7 +578,7 @@ impl<const N: usize> Packet<N> {
                     }
                 }
                 (Groups::Avx2, Some(frame)) => {
-                    // SAFETY: `Groups::Avx2` only where the CPU has AVX2.
+                    // SAFETY: `Groups::Avx2` only where the CPU has AVX2 and FMA.
                     unsafe { group_avx2::subtree(self, shear, frame, vox, seg, lanes, root) };
                 }
                 _ => return false,
@@ -1135,10 +1135,11 @@ fn sort_far_first<T: Copy>(hits: &mut [(f32, T)]) {
     }
 }
 
-/// Whether this CPU has what `group_avx2` needs.
+/// Whether this CPU has what `group_avx2` needs: AVX2, and FMA for its
+/// box test.
 fn avx2_groups_available() -> bool {
     #[cfg(target_arch = "x86_64")]
-    return is_x86_feature_detected!("avx2");
+    return is_x86_feature_detected!("avx2") && is_x86_feature_detected!("fma");
     #[cfg(not(target_arch = "x86_64"))]
     return false;
 }

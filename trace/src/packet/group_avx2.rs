@@ -28,7 +28,7 @@ use std::arch::x86_64::*;
 /// packet's box test in `vox`'s frame.
 ///
 /// # Safety
-/// The CPU must have AVX2.
+/// The CPU must have AVX2 and FMA.
 #[inline]
 #[target_feature(enable = "avx2,fma")]
 pub(super) unsafe fn subtree<const N: usize>(
@@ -105,7 +105,7 @@ struct Avx2Group<const H: usize> {
     lane_of: [usize; 4],
 }
 
-// SAFETY (every method): `subtree`'s callers run with AVX2.
+// SAFETY (every method): `subtree`'s callers run with AVX2 and FMA.
 impl<const N: usize, const H: usize> GroupTests<N> for Avx2Group<H> {
     #[inline(always)]
     unsafe fn children(&self, node: &WideNode, lanes: u32) -> u32 {
