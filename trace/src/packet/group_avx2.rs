@@ -74,15 +74,17 @@ unsafe fn search<const N: usize, const H: usize>(
     for i in 0..N {
         limit[i] = if seg.1[i] < p.t[i] { seg.1[i] } else { p.t[i] };
     }
+    // Three plain calls: through `array::map` LLVM called the closure.
+    let axes = |v: &[[f32; N]; 3]| [halves(&v[0]), halves(&v[1]), halves(&v[2])];
     let rays = GroupRays::<H> {
-        scale: [0, 1, 2].map(|a| halves(&frame.scale[a])),
-        near: [0, 1, 2].map(|a| halves(&frame.near[a])),
-        far: [0, 1, 2].map(|a| halves(&frame.far[a])),
+        scale: axes(&frame.scale),
+        near: axes(&frame.near),
+        far: axes(&frame.far),
         near_at: [0, 1, 2].map(|a| plane_at(a, frame.near_is_max[a])),
         far_at: [0, 1, 2].map(|a| plane_at(a, !frame.near_is_max[a])),
         lo: halves(seg.0),
         limit: halves(&limit),
-        org: [0, 1, 2].map(|a| halves(&p.org[a])),
+        org: axes(&p.org),
         t: halves(&p.t),
         tmin: _mm256_set1_ps(p.tmin),
         k: [shear.kx, shear.ky, shear.kz],
