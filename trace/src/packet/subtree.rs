@@ -111,10 +111,9 @@ pub(super) unsafe fn walk<const N: usize, G: GroupTests<N>>(
         prefetch_children::<N>(vox, node);
         let hit = tests.children(node, lanes);
         // Stored order, the last child on top (as `Packet::search` does
-        // for shadow packets).
-        // Every slot written, kept where some lane enters it: which
-        // children a group's rays enter is data no branch predictor
-        // learns (`scripts/bench-kernel`).
+        // for shadow packets). Every slot is written and kept where some
+        // lane enters it: which children a group's rays enter is data no
+        // branch predictor learns (`scripts/bench-kernel`).
         for c in 0..4 {
             let child_lanes = G::child_lanes(hit, c);
             stack[top].write((node.child[c], child_lanes));
