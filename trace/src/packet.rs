@@ -508,6 +508,14 @@ impl<const N: usize> Packet<N> {
                 None => Boxes::Planes(dequantize(vox, node)),
             };
             let tested = L::node(self, lanes, node, &boxes, seg);
+            if ANY {
+                if self.any_children::<S, L, HAND_OFF>(
+                    shear, frame, vox, seg, node, lanes, &tested, &boxes, &mut stack, &mut top,
+                ) {
+                    return;
+                }
+                continue;
+            }
             // Test every child box; for nearest-hit queries, order the hit
             // ones by where the first ray meets their centres.
             let mut hits = [(0.0f32, (0u32, lanes)); 4];
@@ -544,6 +552,74 @@ impl<const N: usize> Packet<N> {
                 next = hits[n - 1].1;
             }
         }
+    }
+
+    /// A shadow packet's children of `node`, which `lanes` entered: each
+    /// child that few enough lanes enter handed over to them (`HAND_OFF`),
+    /// every other child some lane enters pushed onto `stack` in stored
+    /// order, the last on top. Whether the packet is now wholly blocked.
+    ///
+    /// Every slot is tested, and written to the stack and kept where some
+    /// lane enters it: which children a shadow packet's rays enter is data
+    /// the branch predictor does not learn (`scripts/bench-kernel`).
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    fn any_children<S: TriangleTest<N>, L: EntryLanes<N>, const HAND_OFF: bool>(
+        &mut self,
+        shear: &S,
+        frame: Option<&FrameRays<N>>,
+        vox: &PreparedVoxel,
+        seg: (&[f32; N], &[f32; N]),
+        node: &WideNode,
+        lanes: L,
+        tested: &L::Tested,
+        boxes: &Boxes<'_, N>,
+        stack: &mut [std::mem::MaybeUninit<(u32, L)>],
+        top: &mut usize,
+    ) -> bool {
+        let mut entered = [(lanes, 0u32); 4];
+        for c in 0..4 {
+            let (child_lanes, mask) = L::child_mask(self, lanes, tested, c, boxes, seg, HAND_OFF);
+            let mask = if node.kind(c) == WideNode::EMPTY {
+                0
+            } else {
+                mask
+            };
+            entered[c] = (child_lanes, mask);
+        }
+        let mut handed = 0u32;
+        if HAND_OFF {
+            for c in 0..4 {
+                let mask = entered[c].1;
+                if (1..=4).contains(&mask.count_ones())
+                    && self.hand_off(shear, frame, vox, seg, mask, node.child[c])
+                {
+                    if self.all_blocked() {
+                        return true;
+                    }
+                    handed |= 1 << c;
+                }
+            }
+        }
+        for c in 0..4 {
+            let (kind, first) = (node.kind(c), node.index(c));
+            let (child_lanes, mask) = entered[c];
+            let live = (mask != 0) & (handed & (1 << c) == 0);
+            let entry = stack_entry(kind, first);
+            // The index first: it is never that large, a branch that is
+            // always predicted, where `kind` is not.
+            if first > 0x00FF_FFFF && kind != 0 {
+                // A leaf past what an entry can name (never built): tested
+                // at once, as `child_entry` does.
+                if live && kind != WideNode::EMPTY {
+                    self.triangles::<S, true>(shear, vox, first, kind);
+                }
+                continue;
+            }
+            stack[*top].write((entry, child_lanes));
+            *top += live as usize;
+        }
+        false
     }
 
     /// Where this is a shadow packet that hands sparse subtrees over to
@@ -632,10 +708,8 @@ impl<const N: usize> Packet<N> {
         c: usize,
     ) -> Option<u32> {
         let (kind, first) = (node.kind(c), node.index(c));
-        if kind == 0 {
-            Some(first)
-        } else if first <= 0x00FF_FFFF {
-            Some(LEAF | (kind << 24) | first)
+        if kind == 0 || first <= 0x00FF_FFFF {
+            Some(stack_entry(kind, first))
         } else {
             self.triangles::<S, ANY>(shear, vox, first, kind);
             None
@@ -680,6 +754,18 @@ trait EntryLanes<const N: usize>: Copy {
         seg: (&[f32; N], &[f32; N]),
         masks: bool,
     ) -> Option<(Self, u32)>;
+    /// The lanes of `lanes` that enter child `c` of `boxes`, and a bit for
+    /// each of them where `masks` asks, else `u32::MAX`; 0 where none
+    /// does. Not counted: a shadow packet's children.
+    fn child_mask(
+        p: &Packet<N>,
+        lanes: Self,
+        tested: &Self::Tested,
+        c: usize,
+        boxes: &Boxes<'_, N>,
+        seg: (&[f32; N], &[f32; N]),
+        masks: bool,
+    ) -> (Self, u32);
 }
 
 /// Every lane takes part in every entry (no lanes kept).
@@ -708,18 +794,11 @@ impl<const N: usize> EntryLanes<N> for AllLanes {
         masks: bool,
     ) -> Option<(Self, u32)> {
         let (t0, t1) = boxes.interval(p, c, seg);
-        if masks {
-            // Shadow packets, which never count their lanes.
-            let mask = entering(p, &t0, &t1);
-            return (mask != 0).then_some((AllLanes, mask));
-        }
-        let mut any = false;
-        for i in 0..N {
-            any |= t0[i] <= t1[i];
-        }
-        if !any {
+        let mask = lanes_entering(p, &t0, &t1, masks);
+        if mask == 0 {
             return None;
         }
+        // Only nearest-hit packets count their lanes.
         if p.count_lanes {
             let mut lanes = 0u32;
             for i in 0..N {
@@ -727,7 +806,41 @@ impl<const N: usize> EntryLanes<N> for AllLanes {
             }
             p.count_child(lanes);
         }
-        Some((AllLanes, u32::MAX))
+        Some((AllLanes, mask))
+    }
+
+    #[inline(always)]
+    fn child_mask(
+        p: &Packet<N>,
+        _: Self,
+        _: &(),
+        c: usize,
+        boxes: &Boxes<'_, N>,
+        seg: (&[f32; N], &[f32; N]),
+        masks: bool,
+    ) -> (Self, u32) {
+        let (t0, t1) = boxes.interval(p, c, seg);
+        (AllLanes, lanes_entering(p, &t0, &t1, masks))
+    }
+}
+
+/// The lanes where `t0 <= t1`, a bit each where `masks` asks, else
+/// `u32::MAX` where any lane enters; 0 where none does. Packets that hand
+/// nothing over need only whether any lane enters: a mask of 32 lanes
+/// costs more than the box test.
+#[inline(always)]
+fn lanes_entering<const N: usize>(p: &Packet<N>, t0: &[f32; N], t1: &[f32; N], masks: bool) -> u32 {
+    if masks {
+        return entering(p, t0, t1);
+    }
+    let mut any = false;
+    for i in 0..N {
+        any |= t0[i] <= t1[i];
+    }
+    if any {
+        u32::MAX
+    } else {
+        0
     }
 }
 
@@ -787,6 +900,26 @@ impl<const N: usize> EntryLanes<N> for LaneMask {
         seg: (&[f32; N], &[f32; N]),
         _: bool,
     ) -> Option<(Self, u32)> {
+        let (lanes, entered) = Self::child_mask(p, lanes, tested, c, boxes, seg, true);
+        if entered == 0 {
+            return None;
+        }
+        if p.count_lanes {
+            p.count_child(entered.count_ones());
+        }
+        Some((lanes, entered))
+    }
+
+    #[inline(always)]
+    fn child_mask(
+        p: &Packet<N>,
+        lanes: Self,
+        tested: &Option<[u32; 4]>,
+        c: usize,
+        boxes: &Boxes<'_, N>,
+        seg: (&[f32; N], &[f32; N]),
+        _: bool,
+    ) -> (Self, u32) {
         let entered = match tested {
             Some(entered) => entered[c],
             None => {
@@ -794,13 +927,7 @@ impl<const N: usize> EntryLanes<N> for LaneMask {
                 unsafe { lanes_le16(as16(&t0), as16(&t1)) & lanes.0 }
             }
         };
-        if entered == 0 {
-            return None;
-        }
-        if p.count_lanes {
-            p.count_child(entered.count_ones());
-        }
-        Some((LaneMask(entered), entered))
+        (LaneMask(entered), entered)
     }
 }
 
@@ -1053,6 +1180,17 @@ const fn fused_planes<const N: usize>() -> bool {
 /// a leaf past that, in a voxel of over 16 M triangles, is tested where its
 /// parent finds it).
 const LEAF: u32 = 1 << 31;
+/// The stack entry of a child of `kind` (0 for an interior node, else a
+/// leaf's triangle count) at `first`, which names it ([`LEAF`]).
+#[inline(always)]
+fn stack_entry(kind: u32, first: u32) -> u32 {
+    if kind == 0 {
+        first
+    } else {
+        LEAF | (kind << 24) | first
+    }
+}
+
 /// No entry to visit next.
 const NONE: u32 = u32::MAX;
 
