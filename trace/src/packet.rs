@@ -443,7 +443,8 @@ impl<const N: usize> Packet<N> {
             FrameRays::new(self, &vox.frame)
         };
         let frame = frame.as_ref();
-        let groups = self.groups != Groups::Off;
+        // Only shadow packets hand subtrees over.
+        let groups = ANY && self.groups != Groups::Off;
         if groups {
             let lanes = entering(self, seg.0, seg.1);
             if self.hand_off(shear, frame, vox, seg, lanes, 0) {
@@ -516,34 +517,23 @@ impl<const N: usize> Packet<N> {
                 }
                 continue;
             }
-            // Test every child box; for nearest-hit queries, order the hit
-            // ones by where the first ray meets their centres.
+            // Test every child box; order the hit ones by where the first
+            // ray meets their centres.
             let mut hits = [(0.0f32, (0u32, lanes)); 4];
             let mut n = 0;
             for c in 0..4 {
                 if node.kind(c) == WideNode::EMPTY {
                     break;
                 }
-                let Some((child_lanes, mask)) =
-                    L::child(self, lanes, &tested, c, &boxes, seg, HAND_OFF)
-                else {
+                let Some(child_lanes) = L::child(self, lanes, &tested, c, &boxes, seg) else {
                     continue;
                 };
-                if HAND_OFF && self.hand_off(shear, frame, vox, seg, mask, node.child[c]) {
-                    if self.all_blocked() {
-                        return;
-                    }
-                    continue;
-                }
                 if let Some(e) = self.child_entry::<S, ANY>(shear, vox, node, c) {
-                    let key = if ANY { 0.0 } else { boxes.key(c, dir0) };
-                    hits[n] = (key, (e, child_lanes));
+                    hits[n] = (boxes.key(c, dir0), (e, child_lanes));
                     n += 1;
                 }
             }
-            if !ANY {
-                sort_far_first(&mut hits[..n]);
-            }
+            sort_far_first(&mut hits[..n]);
             if n > 0 {
                 for &(_, e) in &hits[..n - 1] {
                     stack[top].write(e);
@@ -741,10 +731,8 @@ trait EntryLanes<const N: usize>: Copy {
         seg: (&[f32; N], &[f32; N]),
     ) -> Self::Tested;
     /// The lanes of `lanes` that enter child `c` of `boxes`, if any,
-    /// counted where the packet counts its lanes; with them, a bit for
-    /// each where `masks` asks (a shadow packet that hands subtrees over
-    /// to groups), else `u32::MAX`.
-    #[allow(clippy::too_many_arguments)]
+    /// counted where the packet counts its lanes: a nearest-hit packet's
+    /// children.
     fn child(
         p: &mut Packet<N>,
         lanes: Self,
@@ -752,8 +740,7 @@ trait EntryLanes<const N: usize>: Copy {
         c: usize,
         boxes: &Boxes<'_, N>,
         seg: (&[f32; N], &[f32; N]),
-        masks: bool,
-    ) -> Option<(Self, u32)>;
+    ) -> Option<Self>;
     /// The lanes of `lanes` that enter child `c` of `boxes`, and a bit for
     /// each of them where `masks` asks, else `u32::MAX`; 0 where none
     /// does. Not counted: a shadow packet's children.
@@ -791,14 +778,11 @@ impl<const N: usize> EntryLanes<N> for AllLanes {
         c: usize,
         boxes: &Boxes<'_, N>,
         seg: (&[f32; N], &[f32; N]),
-        masks: bool,
-    ) -> Option<(Self, u32)> {
+    ) -> Option<Self> {
         let (t0, t1) = boxes.interval(p, c, seg);
-        let mask = lanes_entering(p, &t0, &t1, masks);
-        if mask == 0 {
+        if lanes_entering(p, &t0, &t1, false) == 0 {
             return None;
         }
-        // Only nearest-hit packets count their lanes.
         if p.count_lanes {
             let mut lanes = 0u32;
             for i in 0..N {
@@ -806,7 +790,7 @@ impl<const N: usize> EntryLanes<N> for AllLanes {
             }
             p.count_child(lanes);
         }
-        Some((AllLanes, mask))
+        Some(AllLanes)
     }
 
     #[inline(always)]
@@ -898,8 +882,7 @@ impl<const N: usize> EntryLanes<N> for LaneMask {
         c: usize,
         boxes: &Boxes<'_, N>,
         seg: (&[f32; N], &[f32; N]),
-        _: bool,
-    ) -> Option<(Self, u32)> {
+    ) -> Option<Self> {
         let (lanes, entered) = Self::child_mask(p, lanes, tested, c, boxes, seg, true);
         if entered == 0 {
             return None;
@@ -907,7 +890,7 @@ impl<const N: usize> EntryLanes<N> for LaneMask {
         if p.count_lanes {
             p.count_child(entered.count_ones());
         }
-        Some((lanes, entered))
+        Some(lanes)
     }
 
     #[inline(always)]
