@@ -528,7 +528,7 @@ impl<const N: usize> Packet<N> {
                 let Some(child_lanes) = L::child(self, lanes, &tested, c, &boxes, seg) else {
                     continue;
                 };
-                if let Some(e) = self.child_entry::<S, ANY>(shear, vox, node, c) {
+                if let Some(e) = self.child_entry::<S>(shear, vox, node, c) {
                     hits[n] = (boxes.key(c, dir0), (e, child_lanes));
                     n += 1;
                 }
@@ -685,12 +685,12 @@ impl<const N: usize> Packet<N> {
         }
     }
 
-    /// The stack entry of child `c` of `node`, which some lane enters: its
-    /// node index, or its leaf. A leaf past what an entry can name (voxels
-    /// of over 16 M triangles; never built, kept exact) is tested at once
-    /// instead.
+    /// The stack entry of child `c` of `node`, which some lane of a
+    /// nearest-hit packet enters: its node index, or its leaf. A leaf past
+    /// what an entry can name (voxels of over 16 M triangles; never built,
+    /// kept exact) is tested at once instead.
     #[inline(always)]
-    fn child_entry<S: TriangleTest<N>, const ANY: bool>(
+    fn child_entry<S: TriangleTest<N>>(
         &mut self,
         shear: &S,
         vox: &PreparedVoxel,
@@ -701,7 +701,7 @@ impl<const N: usize> Packet<N> {
         if kind == 0 || first <= 0x00FF_FFFF {
             Some(stack_entry(kind, first))
         } else {
-            self.triangles::<S, ANY>(shear, vox, first, kind);
+            self.triangles::<S, false>(shear, vox, first, kind);
             None
         }
     }
@@ -742,8 +742,9 @@ trait EntryLanes<const N: usize>: Copy {
         seg: (&[f32; N], &[f32; N]),
     ) -> Option<Self>;
     /// The lanes of `lanes` that enter child `c` of `boxes`, and a bit for
-    /// each of them where `masks` asks, else `u32::MAX`; 0 where none
-    /// does. Not counted: a shadow packet's children.
+    /// each of them where `masks` asks or the entries keep their lanes
+    /// anyway (`LaneMask`), else `u32::MAX`; 0 where none does. Not
+    /// counted: a shadow packet's children.
     fn child_mask(
         p: &Packet<N>,
         lanes: Self,
@@ -1240,7 +1241,8 @@ fn dequantize(vox: &PreparedVoxel, node: &WideNode) -> ([[f32; 4]; 3], [[f32; 4]
 /// Far first, so that the nearest is popped next: an insertion sort by the
 /// key (a library sort of four costs more than the node's box tests). A
 /// shadow packet needs any hit, not the nearest: its children stay in their
-/// stored order, the last popped first: a shadow ray starts on a surface,
+/// stored order, the last popped first ([`Packet::any_children`]): a shadow
+/// ray starts on a surface,
 /// and the nearest boxes hold that surface, which cannot block it (near
 /// first and largest first are both slower in `scripts/bench-kernel`).
 #[inline(always)]

@@ -110,8 +110,8 @@ pub(super) unsafe fn walk<const N: usize, G: GroupTests<N>>(
         let node = &vox.nodes[index as usize];
         prefetch_children::<N>(vox, node);
         let hit = tests.children(node, lanes);
-        // Stored order, the last child on top (as `Packet::search` does
-        // for shadow packets). Every slot is written and kept where some
+        // Stored order, the last child on top (as `Packet::any_children`
+        // does for shadow packets). Every slot is written and kept where some
         // lane enters it: which children a group's rays enter is data no
         // branch predictor learns (`scripts/bench-kernel`).
         for c in 0..4 {
