@@ -403,7 +403,10 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
         stats.primary_rays += rays;
         stats.hits += hits;
         if !ctx.settings.shade && ctx.grey {
-            let grey = std::array::from_fn(|i| depth_grey(p.t[i], ctx.settings.scene_diagonal));
+            let mut grey = [[0; 4]; N];
+            for i in 0..N {
+                grey[i] = depth_grey(p.t[i], ctx.settings.scene_diagonal);
+            }
             self.write_own(out.rgba, out.width, &grey);
         }
         if !ctx.settings.shade {
@@ -656,7 +659,12 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
             any_mirror |= self.weight[i] > 0.0;
         }
         if !any_mirror {
-            let pixels = std::array::from_fn(|i| rgba(self.color.lane(i)));
+            // A loop, not `array::from_fn`: its closure is compiled on its
+            // own, without the kernel's target features.
+            let mut pixels = [[0; 4]; N];
+            for i in 0..N {
+                pixels[i] = rgba(self.color.lane(i));
+            }
             self.write_own(out.rgba, out.width, &pixels);
             self.stage = Stage::Done;
             return;

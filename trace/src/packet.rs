@@ -165,7 +165,10 @@ impl<const N: usize> Packet<N> {
                 inv[a][i] = 1.0 / guarded;
             }
         }
-        let signs = [0, 1, 2].map(|a| {
+        // Loops, not `array::map`: its closure is compiled on its own,
+        // without the kernel's target features, and called per packet.
+        let mut signs = [Sign::Mixed; 3];
+        for a in 0..3 {
             let mut positive = true;
             let mut negative = true;
             let mut zero = false;
@@ -174,13 +177,13 @@ impl<const N: usize> Packet<N> {
                 negative &= inv[a][i] < 0.0;
                 zero |= dir[a][i] == 0.0;
             }
-            match (zero, positive, negative) {
+            signs[a] = match (zero, positive, negative) {
                 (true, _, _) => Sign::WithZero,
                 (_, true, _) => Sign::Positive,
                 (_, _, true) => Sign::Negative,
                 _ => Sign::Mixed,
-            }
-        });
+            };
+        }
         Packet {
             org: *org,
             dir: *dir,
@@ -998,7 +1001,10 @@ impl<const N: usize> FrameRays<N> {
     /// axis has lanes of both signs or a zero component.
     #[inline(always)]
     fn new(p: &Packet<N>, frame: &Frame) -> Option<FrameRays<N>> {
-        let top = frame.scale.map(|s| s * Frame::TOP as f32);
+        let mut top = frame.scale;
+        for a in 0..3 {
+            top[a] *= Frame::TOP as f32;
+        }
         Self::with(p, frame.origin, frame.scale, top)
     }
 
@@ -1604,10 +1610,11 @@ impl<const N: usize> Traversal<N> {
         let world = if root.is_empty() {
             None
         } else {
-            FrameRays::world(
-                packet,
-                [0, 1, 2].map(|a| root.min[a].abs().max(root.max[a].abs())),
-            )
+            let mut extent = [0.0; 3];
+            for a in 0..3 {
+                extent[a] = root.min[a].abs().max(root.max[a].abs());
+            }
+            FrameRays::world(packet, extent)
         };
         if !self.started {
             self.started = true;
