@@ -165,10 +165,7 @@ impl<const N: usize> Packet<N> {
                 inv[a][i] = 1.0 / guarded;
             }
         }
-        // Loops, not `array::map`: its closure is compiled on its own,
-        // without the kernel's target features, and called per packet.
-        let mut signs = [Sign::Mixed; 3];
-        for a in 0..3 {
+        let signs = [0, 1, 2].map(|a| {
             let mut positive = true;
             let mut negative = true;
             let mut zero = false;
@@ -177,13 +174,13 @@ impl<const N: usize> Packet<N> {
                 negative &= inv[a][i] < 0.0;
                 zero |= dir[a][i] == 0.0;
             }
-            signs[a] = match (zero, positive, negative) {
+            match (zero, positive, negative) {
                 (true, _, _) => Sign::WithZero,
                 (_, true, _) => Sign::Positive,
                 (_, _, true) => Sign::Negative,
                 _ => Sign::Mixed,
-            };
-        }
+            }
+        });
         Packet {
             org: *org,
             dir: *dir,
