@@ -1600,7 +1600,9 @@ impl<const N: usize> Traversal<N> {
         top: &TopLevel,
         source: &dyn VoxelSource,
     ) -> Step {
-        let shear = AnyShear::new(packet);
+        // Set up at the first voxel: a packet that meets none (sky) never
+        // needs it.
+        let mut shear: Option<AnyShear<N>> = None;
         // The top level's boxes tested as a voxel's are, in world
         // coordinates, where the packet's lanes agree on every sign.
         let root = &top.boxes[0];
@@ -1650,7 +1652,10 @@ impl<const N: usize> Traversal<N> {
                     // replicated triangles outside this cell are left to
                     // their own voxels (the nearest hit is a minimum over
                     // all of them either way).
-                    match &shear {
+                    if shear.is_none() {
+                        shear = Some(AnyShear::new(packet));
+                    }
+                    match shear.as_ref().expect("just set") {
                         AnyShear::Uniform(s) if packet.any_hit => {
                             packet.voxel::<_, true>(s, &vox, (&t0, &t1))
                         }
