@@ -621,6 +621,7 @@ fn render(a: &RenderArgs) -> Result<()> {
     let report = ViewReport {
         voxels: db.manifest.voxels.len(),
         resident_bytes: source.bytes(),
+        huge_pages_bytes: dray_runtime::process::huge_pages_bytes(),
         load_seconds,
         ..ViewReport::new(&passes, &settings, &camera)
     };

@@ -10,6 +10,16 @@ pub fn peak_rss_bytes() -> Option<u64> {
     Some(kib * 1024)
 }
 
+/// How much of this process's memory is in transparent huge pages
+/// (`AnonHugePages` of `/proc/self/smaps_rollup`); `None` where the
+/// kernel does not say.
+pub fn huge_pages_bytes() -> Option<u64> {
+    let rollup = std::fs::read_to_string("/proc/self/smaps_rollup").ok()?;
+    let line = rollup.lines().find(|l| l.starts_with("AnonHugePages:"))?;
+    let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib * 1024)
+}
+
 /// Makes the process `cmd` starts die with this one, however this one
 /// ends (SIGKILL included), so that no node outlives its supervisor.
 pub fn die_with_parent(cmd: &mut tokio::process::Command) {
@@ -85,10 +95,12 @@ mod tests {
     use super::*;
 
     #[test]
-    fn peak_rss_is_known_on_linux() {
+    fn peak_rss_and_huge_pages_are_known_on_linux() {
         if cfg!(target_os = "linux") {
             let rss = super::peak_rss_bytes().expect("VmHWM");
             assert!(rss > 1 << 20, "{rss}");
+            let huge = super::huge_pages_bytes().expect("AnonHugePages");
+            assert!(huge <= rss, "{huge} of {rss}");
         }
     }
 

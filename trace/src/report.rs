@@ -28,6 +28,9 @@ pub struct ViewReport {
     /// Voxels of the database, and their bytes in the kernel's layout.
     pub voxels: usize,
     pub resident_bytes: usize,
+    /// The process's memory in transparent huge pages, where known: large
+    /// models trace faster in them, so a comparison names it.
+    pub huge_pages_bytes: Option<u64>,
     /// Seconds to load every voxel.
     pub load_seconds: f64,
     pub camera: Camera,
@@ -53,6 +56,7 @@ impl ViewReport {
             shadow_seconds,
             voxels: 0,
             resident_bytes: 0,
+            huge_pages_bytes: None,
             load_seconds: 0.0,
             camera: *camera,
         }
@@ -157,6 +161,7 @@ impl ViewReport {
             "seconds": self.seconds,
             "voxels": self.voxels,
             "load_seconds": self.load_seconds,
+            "huge_pages_mib": self.huge_pages_bytes.map(|b| b as f64 / 1048576.0),
             "eye": self.camera.eye.to_array(),
             "look": self.camera.look.to_array(),
         })
