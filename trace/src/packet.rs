@@ -1245,9 +1245,9 @@ fn dequantize(vox: &PreparedVoxel, node: &WideNode) -> ([[f32; 4]; 3], [[f32; 4]
 /// key (a library sort of four costs more than the node's box tests). A
 /// shadow packet needs any hit, not the nearest: its children stay in their
 /// stored order, the last popped first ([`Packet::any_children`]): a shadow
-/// ray starts on a surface,
-/// and the nearest boxes hold that surface, which cannot block it (near
-/// first and largest first are both slower in `scripts/bench-kernel`).
+/// ray starts on a surface, and the nearest boxes hold that surface, which
+/// cannot block it (near first and largest first are both slower in
+/// `scripts/bench-kernel`).
 #[inline(always)]
 fn sort_far_first<T: Copy>(hits: &mut [(f32, T)]) {
     for j in 1..hits.len() {
@@ -1609,6 +1609,7 @@ impl<const N: usize> Traversal<N> {
         let world = if root.is_empty() {
             None
         } else {
+            // A loop: through `array::map` LLVM called a closure per packet.
             let mut extent = [0.0; 3];
             for a in 0..3 {
                 extent[a] = root.min[a].abs().max(root.max[a].abs());
