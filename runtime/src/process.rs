@@ -4,20 +4,21 @@
 /// Peak resident set size of this process so far (Linux `VmHWM`), or
 /// `None` where the platform does not say.
 pub fn peak_rss_bytes() -> Option<u64> {
-    let status = std::fs::read_to_string("/proc/self/status").ok()?;
-    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
-    let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
-    Some(kib * 1024)
+    proc_kib("/proc/self/status", "VmHWM:").map(|kib| kib * 1024)
 }
 
 /// How much of this process's memory is in transparent huge pages
 /// (`AnonHugePages` of `/proc/self/smaps_rollup`); `None` where the
 /// kernel does not say.
 pub fn huge_pages_bytes() -> Option<u64> {
-    let rollup = std::fs::read_to_string("/proc/self/smaps_rollup").ok()?;
-    let line = rollup.lines().find(|l| l.starts_with("AnonHugePages:"))?;
-    let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
-    Some(kib * 1024)
+    proc_kib("/proc/self/smaps_rollup", "AnonHugePages:").map(|kib| kib * 1024)
+}
+
+/// The kB figure on the line of `file` that starts with `key`.
+fn proc_kib(file: &str, key: &str) -> Option<u64> {
+    let text = std::fs::read_to_string(file).ok()?;
+    let line = text.lines().find(|l| l.starts_with(key))?;
+    line.split_whitespace().nth(1)?.parse().ok()
 }
 
 /// Makes the process `cmd` starts die with this one, however this one
