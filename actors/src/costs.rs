@@ -292,7 +292,7 @@ pub fn calibrate(cfg: &Config, isa: Isa, threads: usize) -> Result<Calibration, 
                     .map_err(|e| place(&e))?;
                     *t = start.elapsed().as_secs_f64() * 1e9;
                     work = dray_trace::work::done().since(before);
-                    chooser.learn(image.stats.child_hits, image.stats.child_lanes);
+                    chooser.learn(s.isa, image.stats.child_hits, image.stats.child_lanes);
                 }
                 times.sort_by(f64::total_cmp);
                 let median = times[1];

@@ -126,7 +126,8 @@ pub struct RenderSettings {
 
 /// Rays per packet on AVX-512 and AVX2: 16 (4×4 pixels) or 32 (8×4), and
 /// how 16 are traced. Wide packets pay off where the rays of a block stay
-/// together (inside the plants), narrow ones where they part (a whole
+/// together (inside the plants; with AVX2 only where they stay together
+/// the most, [`PacketChooser`]), narrow ones where they part (a whole
 /// plant seen from afar), and sparse ones where they part most: a node
 /// that at most four of the 16 lanes enter tests its four children for
 /// them at once (`crate::quad`, AVX-512 only: AVX2 traces them as
@@ -188,21 +189,23 @@ impl PacketChooser {
         self.scattered
     }
 
-    /// Learns from a tile traced with [`Self::next`]'s packets, from its
-    /// [`FrameStats::child_hits`] and [`FrameStats::child_lanes`].
-    pub fn learn(&mut self, child_hits: u64, child_lanes: u64) {
+    /// Learns from a tile traced with [`Self::next`]'s packets by the
+    /// kernel of `isa`, from its [`FrameStats::child_hits`] and
+    /// [`FrameStats::child_lanes`].
+    pub fn learn(&mut self, isa: Isa, child_hits: u64, child_lanes: u64) {
         if self.mode != Packets::Auto || child_hits < MIN_CHILD_HITS {
             return;
         }
         let lanes = child_lanes as f64 / child_hits as f64;
         self.scattered = lanes < SCATTERED_BELOW;
-        // A wide tile's figure counts lanes of 32: below STAY_WIDE it goes
+        let Wide { go, stay } = Wide::of(isa);
+        // A wide tile's figure counts lanes of 32: below `stay` it goes
         // back to 16 first.
         self.next = match self.next {
-            Packets::Wide if lanes >= STAY_WIDE => Packets::Wide,
+            Packets::Wide if lanes >= stay => Packets::Wide,
             Packets::Wide => Packets::Narrow,
             Packets::Sparse if lanes < STAY_SPARSE => Packets::Sparse,
-            _ if lanes >= GO_WIDE => Packets::Wide,
+            _ if lanes >= go => Packets::Wide,
             _ if lanes < GO_SPARSE => Packets::Sparse,
             _ => Packets::Narrow,
         };
@@ -217,10 +220,35 @@ impl PacketChooser {
 /// tile's rays stay together, the packets' search is the one without
 /// hand-overs, which is faster there (`scripts/bench-kernel`).
 const SCATTERED_BELOW: f64 = 4.0;
-/// Lanes of 16 entering a child box together from which 32 pay off.
-const GO_WIDE: f64 = 8.0;
-/// Lanes of 32 below which 16 are better again.
-const STAY_WIDE: f64 = 11.0;
+/// When 32-lane packets pay off, by the lanes entering a child box
+/// together.
+struct Wide {
+    /// Lanes of 16 from which 32 pay off.
+    go: f64,
+    /// Lanes of 32 below which 16 are better again.
+    stay: f64,
+}
+
+impl Wide {
+    /// With AVX2 a 32-lane packet pays off only where its rays stay
+    /// together more than with AVX-512: its 16-lane packets are faster
+    /// for primary rays in every view of `scripts/bench-kernel`, by 3 to
+    /// 24 %, and only the shaded frames and shadow rays inside the 12.5 M
+    /// plant and the living room, whose rays stay together the most,
+    /// still gain from 32 (`docs/benchmarks.md`).
+    fn of(isa: Isa) -> Wide {
+        match isa {
+            Isa::Avx2 => Wide {
+                go: 13.0,
+                stay: 20.0,
+            },
+            _ => Wide {
+                go: 8.0,
+                stay: 11.0,
+            },
+        }
+    }
+}
 /// Lanes of 16 below which sparse packets pay off, and above which narrow
 /// ones are better again.
 const GO_SPARSE: f64 = 3.0;
@@ -427,7 +455,11 @@ pub fn render_sample(
                         chooser.scattered(),
                     ) {
                         Ok(out) => {
-                            chooser.learn(out.stats.child_hits, out.stats.child_lanes);
+                            chooser.learn(
+                                settings.isa,
+                                out.stats.child_hits,
+                                out.stats.child_lanes,
+                            );
                             merge(&frame, out)
                         }
                         Err(id) => {
@@ -727,7 +759,8 @@ mod tests {
     fn the_chooser_moves_between_sparse_narrow_and_wide() {
         let mut c = PacketChooser::new(Packets::Auto);
         assert_eq!(c.next(), Packets::Narrow);
-        let learn = |c: &mut PacketChooser, lanes: f64| c.learn(1000, (lanes * 1000.0) as u64);
+        let learn =
+            |c: &mut PacketChooser, lanes: f64| c.learn(Isa::Avx512, 1000, (lanes * 1000.0) as u64);
         let steps = [
             (2.5, Packets::Sparse),
             (3.2, Packets::Sparse),
@@ -751,7 +784,7 @@ mod tests {
             );
         }
         // Too few sampled boxes (a tile of sky) change nothing.
-        c.learn(MIN_CHILD_HITS - 1, 0);
+        c.learn(Isa::Avx512, MIN_CHILD_HITS - 1, 0);
         assert_eq!(c.next(), Packets::Sparse);
         // Fixed choices stay.
         for fixed in [Packets::Narrow, Packets::Wide, Packets::Sparse] {
@@ -761,5 +794,30 @@ mod tests {
             learn(&mut c, 1.0);
             assert_eq!(c.next(), fixed);
         }
+    }
+
+    /// With AVX2, 32 lanes take rays that stay together more than with
+    /// AVX-512: the same figures that take AVX-512 wide leave AVX2 narrow.
+    #[test]
+    fn avx2_goes_wide_only_where_rays_stay_together_more() {
+        let mut c = PacketChooser::new(Packets::Auto);
+        let learn =
+            |c: &mut PacketChooser, lanes: f64| c.learn(Isa::Avx2, 1000, (lanes * 1000.0) as u64);
+        let steps = [
+            (9.0, Packets::Narrow),
+            (12.0, Packets::Narrow),
+            (13.5, Packets::Wide),
+            (21.0, Packets::Wide),
+            (15.0, Packets::Narrow),
+            (2.5, Packets::Sparse),
+            (14.0, Packets::Wide),
+        ];
+        for (k, (lanes, want)) in steps.into_iter().enumerate() {
+            learn(&mut c, lanes);
+            assert_eq!(c.next(), want, "step {k}: {lanes} lanes");
+        }
+        let mut avx512 = PacketChooser::new(Packets::Auto);
+        avx512.learn(Isa::Avx512, 1000, 9000);
+        assert_eq!(avx512.next(), Packets::Wide);
     }
 }

@@ -114,7 +114,11 @@ async fn run_job(
     .await;
     if let Ok(image) = &image {
         let mut c = chooser.get();
-        c.learn(image.stats.child_hits, image.stats.child_lanes);
+        c.learn(
+            settings.isa,
+            image.stats.child_hits,
+            image.stats.child_lanes,
+        );
         chooser.set(c);
     }
     TileResult {
