@@ -198,7 +198,7 @@ impl PacketChooser {
         }
         let lanes = child_lanes as f64 / child_hits as f64;
         self.scattered = lanes < SCATTERED_BELOW;
-        let Wide { go, stay } = Wide::of(isa);
+        let WideFrom { go, stay } = WideFrom::of(isa);
         // A wide tile's figure counts lanes of 32: below `stay` it goes
         // back to 16 first.
         self.next = match self.next {
@@ -222,27 +222,27 @@ impl PacketChooser {
 const SCATTERED_BELOW: f64 = 4.0;
 /// When 32-lane packets pay off, by the lanes entering a child box
 /// together.
-struct Wide {
+struct WideFrom {
     /// Lanes of 16 from which 32 pay off.
     go: f64,
     /// Lanes of 32 below which 16 are better again.
     stay: f64,
 }
 
-impl Wide {
+impl WideFrom {
     /// With AVX2 a 32-lane packet pays off only where its rays stay
     /// together more than with AVX-512: its 16-lane packets are faster
     /// for primary rays in every view of `scripts/bench-kernel`, by 3 to
-    /// 24 %, and only the shaded frames and shadow rays inside the 12.5 M
-    /// plant and the living room, whose rays stay together the most,
-    /// still gain from 32 (`docs/benchmarks.md`).
-    fn of(isa: Isa) -> Wide {
+    /// 24 %, and only the shadow rays inside the 12.5 M plant and the
+    /// living room (and the 12.5 M plant's shaded frames), whose rays
+    /// stay together the most, still gain from 32 (`docs/benchmarks.md`).
+    fn of(isa: Isa) -> WideFrom {
         match isa {
-            Isa::Avx2 => Wide {
+            Isa::Avx2 => WideFrom {
                 go: 13.0,
                 stay: 20.0,
             },
-            _ => Wide {
+            _ => WideFrom {
                 go: 8.0,
                 stay: 11.0,
             },
