@@ -753,45 +753,59 @@ pub fn render_repeated(
 mod tests {
     use super::*;
 
+    /// Teaches `c` a tile of `lanes` sampled lanes a box with the kernel
+    /// of `isa`.
+    fn learn(c: &mut PacketChooser, isa: Isa, lanes: f64) {
+        c.learn(isa, 1000, (lanes * 1000.0) as u64);
+    }
+
+    /// Feeds a fresh chooser `steps` (lanes a box, the packets then
+    /// chosen) with `isa`, checking each choice and whether the tile is
+    /// taken as scattered; the chooser.
+    fn feed(isa: Isa, steps: &[(f64, Packets)]) -> PacketChooser {
+        let mut c = PacketChooser::new(Packets::Auto);
+        assert_eq!(c.next(), Packets::Narrow);
+        for (k, &(lanes, want)) in steps.iter().enumerate() {
+            learn(&mut c, isa, lanes);
+            assert_eq!(c.next(), want, "{isa:?} step {k}: {lanes} lanes");
+            assert_eq!(
+                c.scattered(),
+                lanes < SCATTERED_BELOW,
+                "{isa:?} step {k}: {lanes} lanes"
+            );
+        }
+        c
+    }
+
     /// The chooser's moves between packets, with their hysteresis, from
     /// sampled lanes per entered child box (a wide tile's in lanes of 32).
     #[test]
     fn the_chooser_moves_between_sparse_narrow_and_wide() {
-        let mut c = PacketChooser::new(Packets::Auto);
-        assert_eq!(c.next(), Packets::Narrow);
-        let learn =
-            |c: &mut PacketChooser, lanes: f64| c.learn(Isa::Avx512, 1000, (lanes * 1000.0) as u64);
-        let steps = [
-            (2.5, Packets::Sparse),
-            (3.2, Packets::Sparse),
-            (3.6, Packets::Narrow),
-            (3.2, Packets::Narrow),
-            (2.9, Packets::Sparse),
-            (9.0, Packets::Wide),
-            (10.0, Packets::Narrow),
-            (8.5, Packets::Wide),
-            (11.5, Packets::Wide),
-            (2.0, Packets::Narrow),
-            (2.0, Packets::Sparse),
-        ];
-        for (k, (lanes, want)) in steps.into_iter().enumerate() {
-            learn(&mut c, lanes);
-            assert_eq!(c.next(), want, "step {k}: {lanes} lanes");
-            assert_eq!(
-                c.scattered(),
-                lanes < SCATTERED_BELOW,
-                "step {k}: {lanes} lanes"
-            );
-        }
+        let mut c = feed(
+            Isa::Avx512,
+            &[
+                (2.5, Packets::Sparse),
+                (3.2, Packets::Sparse),
+                (3.6, Packets::Narrow),
+                (3.2, Packets::Narrow),
+                (2.9, Packets::Sparse),
+                (9.0, Packets::Wide),
+                (10.0, Packets::Narrow),
+                (8.5, Packets::Wide),
+                (11.5, Packets::Wide),
+                (2.0, Packets::Narrow),
+                (2.0, Packets::Sparse),
+            ],
+        );
         // Too few sampled boxes (a tile of sky) change nothing.
         c.learn(Isa::Avx512, MIN_CHILD_HITS - 1, 0);
         assert_eq!(c.next(), Packets::Sparse);
         // Fixed choices stay.
         for fixed in [Packets::Narrow, Packets::Wide, Packets::Sparse] {
             let mut c = PacketChooser::new(fixed);
-            learn(&mut c, 20.0);
+            learn(&mut c, Isa::Avx512, 20.0);
             assert!(c.scattered());
-            learn(&mut c, 1.0);
+            learn(&mut c, Isa::Avx512, 1.0);
             assert_eq!(c.next(), fixed);
         }
     }
@@ -800,24 +814,18 @@ mod tests {
     /// AVX-512: the same figures that take AVX-512 wide leave AVX2 narrow.
     #[test]
     fn avx2_goes_wide_only_where_rays_stay_together_more() {
-        let mut c = PacketChooser::new(Packets::Auto);
-        let learn =
-            |c: &mut PacketChooser, lanes: f64| c.learn(Isa::Avx2, 1000, (lanes * 1000.0) as u64);
-        let steps = [
-            (9.0, Packets::Narrow),
-            (12.0, Packets::Narrow),
-            (13.5, Packets::Wide),
-            (21.0, Packets::Wide),
-            (15.0, Packets::Narrow),
-            (2.5, Packets::Sparse),
-            (14.0, Packets::Wide),
-        ];
-        for (k, (lanes, want)) in steps.into_iter().enumerate() {
-            learn(&mut c, lanes);
-            assert_eq!(c.next(), want, "step {k}: {lanes} lanes");
-        }
-        let mut avx512 = PacketChooser::new(Packets::Auto);
-        avx512.learn(Isa::Avx512, 1000, 9000);
-        assert_eq!(avx512.next(), Packets::Wide);
+        feed(
+            Isa::Avx2,
+            &[
+                (9.0, Packets::Narrow),
+                (12.0, Packets::Narrow),
+                (13.5, Packets::Wide),
+                (21.0, Packets::Wide),
+                (15.0, Packets::Narrow),
+                (2.5, Packets::Sparse),
+                (14.0, Packets::Wide),
+            ],
+        );
+        feed(Isa::Avx512, &[(9.0, Packets::Wide)]);
     }
 }
