@@ -231,11 +231,10 @@ struct WideFrom {
 
 impl WideFrom {
     /// With AVX2 a 32-lane packet pays off only where its rays stay
-    /// together more than with AVX-512: its 16-lane packets are faster
-    /// for primary rays in every view of `scripts/bench-kernel`, by 3 to
-    /// 24 %, and only the shadow rays inside the 12.5 M plant and the
-    /// living room (and the 12.5 M plant's shaded frames), whose rays
-    /// stay together the most, still gain from 32 (`docs/benchmarks.md`).
+    /// together more than with AVX-512: there 16-lane packets are the
+    /// faster ones for primary rays, and only the shadow rays of the views
+    /// whose rays stay together the most still gain from 32 lanes
+    /// (`scripts/bench-kernel`, `docs/benchmarks.md`).
     fn of(isa: Isa) -> WideFrom {
         match isa {
             Isa::Avx2 => WideFrom {
