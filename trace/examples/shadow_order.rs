@@ -1,7 +1,7 @@
 //! Experiment: does the order in which shadow rays are grouped into
 //! packets matter? Renders one view's primary hits (one thread), then
 //! traces a shadow ray from every hit towards the light in packets of 16
-//! formed four ways, and prints Mrays/s for each:
+//! formed five ways, and prints Mrays/s for each:
 //!
 //! - `per block`: 4×4 pixel blocks, as the kernel forms them (lanes
 //!   without a hit are dead);
@@ -10,14 +10,24 @@
 //!   the plane across the light (then along it), so that rays running side
 //!   by side share a packet;
 //! - `tile-sorted`: the same within each 32×32 tile, which is what a
-//!   tile's job could do.
+//!   tile's job could do;
+//! - `broken blocks sorted`: within each tile, the blocks that straddle a
+//!   step in depth ([`STEP`]) or the sky sorted so, the other blocks kept.
 //!
-//! The packet code is generic; built for this CPU it compares the
-//! orderings fairly (the absolute figures are not the kernel's):
+//! The two orderings a tile could form also print the time their keys and
+//! sorts took (once, every tile) and the rate with it added: what a tile's
+//! job would pay for the order.
+//!
+//! CODE says which packet code traces them: `generic` (the default: the
+//! packet code as the example is built; built for this CPU it compares the
+//! orderings fairly, though the absolute figures are not the kernel's),
+//! `avx2` (the kernel's AVX2 code) or `avx2-groups` (that code handing
+//! sparse subtrees over to groups of lanes, as the kernel's shadow packets
+//! do in tiles whose rays part):
 //!
 //! ```text
 //! RUSTFLAGS="-C target-cpu=native" CARGO_TARGET_DIR=target/native \
-//!   cargo run --release -p dray-trace --example shadow_order -- DB EYE LOOK
+//!   cargo run --release -p dray-trace --example shadow_order -- DB EYE LOOK [CODE]
 //! ```
 //!
 //! (EYE and LOOK as `x,y,z`; field of view 50°, 640×480, light 0.3,1,0.2:
@@ -26,7 +36,7 @@
 use dray_scene::db::Database;
 use dray_trace::camera::Camera;
 use dray_trace::packet::{Packet, Traversal};
-use dray_trace::render::{render, RenderSettings};
+use dray_trace::render::{render, Isa, RenderSettings};
 /// As the kernel's shadow rays start (`render::SHADOW_EPS`, times the
 /// scene's diagonal).
 const SHADOW_EPS: f32 = 1e-4;
@@ -36,17 +46,31 @@ use std::time::Instant;
 
 const N: usize = 16;
 
+/// A block whose nearest and farthest hits differ by more than this share
+/// of the nearest is taken to straddle a step in depth.
+const STEP: f32 = 0.05;
+
 fn v3(s: &str) -> Vec3 {
     let p: Vec<f32> = s.split(',').map(|x| x.parse().unwrap()).collect();
     Vec3::new(p[0], p[1], p[2])
 }
 
+/// Which packet code traces the shadow rays.
+#[derive(Clone, Copy, PartialEq)]
+enum Code {
+    Generic,
+    Avx2,
+    Avx2Groups,
+}
+
+#[inline(always)]
 fn trace(
     top: &TopLevel,
     src: &ResidentSource,
     packets: &[Vec<Vec3>],
     light: Vec3,
     eps: f32,
+    groups: bool,
 ) -> (f64, usize) {
     let mut occluded = 0;
     let t0 = Instant::now();
@@ -56,6 +80,9 @@ fn trace(
         o[..chunk.len()].copy_from_slice(chunk);
         let mut pk = Packet::<N>::new(&o, &[light; N], eps, f32::INFINITY);
         pk.any_hit = true;
+        if groups {
+            pk.hand_off_sparse_subtrees(Isa::Avx2);
+        }
         // Lanes without a hit take no part.
         pk.t[chunk.len()..].fill(f32::NEG_INFINITY);
         tr.reset();
@@ -65,8 +92,53 @@ fn trace(
     (t0.elapsed().as_secs_f64(), occluded)
 }
 
+/// [`trace`] compiled with the kernel's AVX2 target features.
+///
+/// # Safety
+/// The CPU must have them ([`Isa::supported`]).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
+unsafe fn trace_avx2(
+    top: &TopLevel,
+    src: &ResidentSource,
+    packets: &[Vec<Vec3>],
+    light: Vec3,
+    eps: f32,
+    groups: bool,
+) -> (f64, usize) {
+    trace(top, src, packets, light, eps, groups)
+}
+
+fn trace_with(
+    code: Code,
+    top: &TopLevel,
+    src: &ResidentSource,
+    packets: &[Vec<Vec3>],
+    light: Vec3,
+    eps: f32,
+) -> (f64, usize) {
+    match code {
+        Code::Generic => trace(top, src, packets, light, eps, false),
+        // SAFETY: `main` takes an AVX2 code only where the CPU has AVX2.
+        #[cfg(target_arch = "x86_64")]
+        _ => unsafe { trace_avx2(top, src, packets, light, eps, code == Code::Avx2Groups) },
+        #[cfg(not(target_arch = "x86_64"))]
+        _ => unreachable!("AVX2 codes are refused off x86-64"),
+    }
+}
+
 fn main() {
     let a: Vec<String> = std::env::args().collect();
+    let code = match a.get(4).map(String::as_str) {
+        None | Some("generic") => Code::Generic,
+        Some("avx2") => Code::Avx2,
+        Some("avx2-groups") => Code::Avx2Groups,
+        Some(other) => panic!("CODE {other:?}: expected generic, avx2 or avx2-groups"),
+    };
+    assert!(
+        code == Code::Generic || Isa::Avx2.supported(),
+        "this CPU has no AVX2"
+    );
     let db = Database::open(std::path::Path::new(&a[1])).unwrap();
     let top = TopLevel::from_manifest(&db.manifest);
     let src = ResidentSource::load(&db).unwrap();
@@ -120,7 +192,7 @@ fn main() {
         lo = lo.min(*p);
         hi = hi.max(*p);
     }
-    let key = |p: &Vec3| {
+    let key_within = |p: &Vec3, lo: Vec3, hi: Vec3| {
         let q = (*p - lo) / (hi - lo).max(Vec3::splat(1e-9)) * 1023.0;
         let mut k = 0u64;
         for bit in 0..10 {
@@ -130,9 +202,35 @@ fn main() {
         }
         k
     };
+    let key = |p: &Vec3| key_within(p, lo, hi);
     let mut order: Vec<usize> = (0..blocks.len()).collect();
     order.sort_by_key(|&i| key(&proj[i]));
     let sorted: Vec<Vec3> = order.iter().map(|&i| blocks[i]).collect();
+    // A tile's points in Morton order across the light, quantized within
+    // the tile's own bounds (the frame's would leave most of a tile's
+    // points on one key); the time it takes is summed in `sorting`.
+    let sorting = std::cell::Cell::new(std::time::Duration::ZERO);
+    let sort_across = |pts: Vec<Vec3>| -> Vec<Vec3> {
+        let t0 = Instant::now();
+        let across: Vec<Vec3> = pts
+            .iter()
+            .map(|p| Vec3::new(p.dot(u), p.dot(v), p.dot(light)))
+            .collect();
+        let (mut tlo, mut thi) = (Vec3::splat(f32::MAX), Vec3::splat(f32::MIN));
+        for q in &across {
+            tlo = tlo.min(*q);
+            thi = thi.max(*q);
+        }
+        let mut keyed: Vec<(u64, Vec3)> = across
+            .iter()
+            .zip(&pts)
+            .map(|(q, p)| (key_within(q, tlo, thi), *p))
+            .collect();
+        keyed.sort_unstable_by_key(|&(k, _)| k);
+        let sorted = keyed.into_iter().map(|(_, p)| p).collect();
+        sorting.set(sorting.get() + t0.elapsed());
+        sorted
+    };
     // Sorted within each 32x32 tile (as a tile's job could).
     let mut tiled: Vec<Vec<Vec3>> = Vec::new();
     for ty in (0..480).step_by(32) {
@@ -147,29 +245,73 @@ fn main() {
                     }
                 }
             }
-            pts.sort_by_key(|p| key(&Vec3::new(p.dot(u), p.dot(v), p.dot(light))));
+            let pts = sort_across(pts);
             tiled.extend(pts.chunks(N).map(|c| c.to_vec()));
         }
     }
+    let tile_sorting = sorting.replace(std::time::Duration::ZERO);
+    // Blocks that straddle a depth step (their depths more than `STEP`
+    // apart) or the sky sorted within their tile; whole, smooth blocks kept
+    // as they are.
+    let mut mixed: Vec<Vec<Vec3>> = Vec::new();
+    for ty in (0..480).step_by(32) {
+        for tx in (0..640).step_by(32) {
+            let mut loose = Vec::new();
+            for by in (ty..ty + 32).step_by(4) {
+                for bx in (tx..tx + 32).step_by(4) {
+                    let mut pts = Vec::new();
+                    let (mut tmin, mut tmax) = (f32::MAX, 0f32);
+                    for y in by..by + 4 {
+                        for x in bx..bx + 4 {
+                            let t = frame.depth[(y * 640 + x) as usize];
+                            if t.is_finite() {
+                                let r = b.ray(x, y);
+                                pts.push(r.origin + r.dir * t);
+                                tmin = tmin.min(t);
+                                tmax = tmax.max(t);
+                            }
+                        }
+                    }
+                    if pts.len() == N && tmax <= tmin * (1.0 + STEP) {
+                        mixed.push(pts);
+                    } else {
+                        loose.extend(pts);
+                    }
+                }
+            }
+            let loose = sort_across(loose);
+            mixed.extend(loose.chunks(N).map(|c| c.to_vec()));
+        }
+    }
+    let broken_sorting = sorting.get();
     for _ in 0..2 {
         let chunks = |v: &Vec<Vec3>| v.chunks(N).map(|c| c.to_vec()).collect::<Vec<_>>();
         let (compact, sorted_p) = (chunks(&blocks), chunks(&sorted));
-        for (name, pts) in [
-            ("per block", &per_block),
-            ("compacted", &compact),
-            ("sorted", &sorted_p),
-            ("tile-sorted", &tiled),
+        for (name, pts, ordering) in [
+            ("per block", &per_block, None),
+            ("compacted", &compact, None),
+            ("sorted", &sorted_p, None),
+            ("tile-sorted", &tiled, Some(tile_sorting)),
+            ("broken blocks sorted", &mixed, Some(broken_sorting)),
         ] {
             let mut best = f64::MAX;
             let mut occ = 0;
             for _ in 0..5 {
-                let (s, o) = trace(&top, &src, pts, light, eps);
+                let (s, o) = trace_with(code, &top, &src, pts, light, eps);
                 best = best.min(s);
                 occ = o;
             }
             let n = blocks.len();
+            // What a tile's job would add: its keys and sort, timed once.
+            let sorting = ordering.map_or(String::new(), |d: std::time::Duration| {
+                format!(
+                    ", sorting {:.2} ms ({:.2} Mrays/s with it)",
+                    d.as_secs_f64() * 1e3,
+                    n as f64 / (best + d.as_secs_f64()) / 1e6
+                )
+            });
             println!(
-                "{name}: {} packets, {n} rays, {:.2} Mrays/s, occluded {occ}",
+                "{name}: {} packets, {n} rays, {:.2} Mrays/s, occluded {occ}{sorting}",
                 pts.len(),
                 n as f64 / best / 1e6
             );
