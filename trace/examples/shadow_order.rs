@@ -1,7 +1,7 @@
 //! Experiment: does the order in which shadow rays are grouped into
 //! packets matter? Renders one view's primary hits (one thread), then
 //! traces a shadow ray from every hit towards the light in packets of 16
-//! formed five ways, and prints Mrays/s for each:
+//! formed six ways, and prints Mrays/s for each:
 //!
 //! - `per block`: 4×4 pixel blocks, as the kernel forms them (lanes
 //!   without a hit are dead);
@@ -12,11 +12,13 @@
 //! - `tile-sorted`: the same within each 32×32 tile, which is what a
 //!   tile's job could do;
 //! - `broken blocks sorted`: within each tile, the blocks that straddle a
-//!   step in depth ([`STEP`]) or the sky sorted so, the other blocks kept.
+//!   step in depth ([`STEP`]) or the sky sorted so, the other blocks kept;
+//! - `broken blocks by voxel`: those blocks' rays bucketed by the voxel
+//!   their hits lie in instead.
 //!
-//! The two orderings a tile could form also print the time their keys and
-//! sorts took (once, every tile) and the rate with it added: what a tile's
-//! job would pay for the order.
+//! The three orderings a tile could form also print the time their keys
+//! and sorts took (once, every tile) and the rate with it added: what a
+//! tile's job would pay for the order.
 //!
 //! CODE says which packet code traces them: `generic` (the default: the
 //! packet code as the example is built; built for this CPU it compares the
@@ -284,6 +286,59 @@ fn main() {
         }
     }
     let broken_sorting = sorting.get();
+    // The same blocks bucketed by the voxel their hits lie in, in the
+    // order the voxels first appear (the kernel knows each hit's voxel:
+    // only the bucketing is timed).
+    let mut buckets: Vec<Vec<Vec3>> = Vec::new();
+    let mut bucketing = std::time::Duration::ZERO;
+    for ty in (0..480).step_by(32) {
+        for tx in (0..640).step_by(32) {
+            let mut loose = Vec::new();
+            for by in (ty..ty + 32).step_by(4) {
+                for bx in (tx..tx + 32).step_by(4) {
+                    let mut pts = Vec::new();
+                    let (mut tmin, mut tmax) = (f32::MAX, 0f32);
+                    for y in by..by + 4 {
+                        for x in bx..bx + 4 {
+                            let t = frame.depth[(y * 640 + x) as usize];
+                            if t.is_finite() {
+                                let r = b.ray(x, y);
+                                pts.push(r.origin + r.dir * t);
+                                tmin = tmin.min(t);
+                                tmax = tmax.max(t);
+                            }
+                        }
+                    }
+                    if pts.len() == N && tmax <= tmin * (1.0 + STEP) {
+                        buckets.push(pts);
+                    } else {
+                        loose.extend(pts);
+                    }
+                }
+            }
+            let ids: Vec<u32> = loose
+                .iter()
+                .map(|p| top.voxel_at(*p).unwrap_or(u32::MAX))
+                .collect();
+            let t0 = Instant::now();
+            let mut seen: Vec<u32> = Vec::new();
+            let mut out: Vec<Vec<Vec3>> = Vec::new();
+            for (p, id) in loose.iter().zip(&ids) {
+                let k = match seen.iter().position(|s| s == id) {
+                    Some(k) => k,
+                    None => {
+                        seen.push(*id);
+                        out.push(Vec::new());
+                        seen.len() - 1
+                    }
+                };
+                out[k].push(*p);
+            }
+            let flat: Vec<Vec3> = out.into_iter().flatten().collect();
+            bucketing += t0.elapsed();
+            buckets.extend(flat.chunks(N).map(|c| c.to_vec()));
+        }
+    }
     for _ in 0..2 {
         let chunks = |v: &Vec<Vec3>| v.chunks(N).map(|c| c.to_vec()).collect::<Vec<_>>();
         let (compact, sorted_p) = (chunks(&blocks), chunks(&sorted));
@@ -293,6 +348,7 @@ fn main() {
             ("sorted", &sorted_p, None),
             ("tile-sorted", &tiled, Some(tile_sorting)),
             ("broken blocks sorted", &mixed, Some(broken_sorting)),
+            ("broken blocks by voxel", &buckets, Some(bucketing)),
         ] {
             let mut best = f64::MAX;
             let mut occ = 0;
