@@ -16,9 +16,9 @@
 //! - `broken blocks by voxel`: those blocks' rays bucketed by the voxel
 //!   their hits lie in instead.
 //!
-//! The three orderings a tile could form also print the time their keys
-//! and sorts took (once, every tile) and the rate with it added: what a
-//! tile's job would pay for the order.
+//! The three orderings a tile could form also print the time forming them
+//! took (once, every tile) and the rate with it added: what a tile's job
+//! would pay for the order.
 //!
 //! CODE says which packet code traces them: `generic` (the default: the
 //! packet code as the example is built; built for this CPU it compares the
@@ -55,6 +55,16 @@ const STEP: f32 = 0.05;
 fn v3(s: &str) -> Vec3 {
     let p: Vec<f32> = s.split(',').map(|x| x.parse().unwrap()).collect();
     Vec3::new(p[0], p[1], p[2])
+}
+
+/// A tile's blocks, split: whole blocks whose depths lie within [`STEP`]
+/// of each other (a packet each), and the points of the others (those
+/// that straddle a step in depth or see the sky), with the voxels they lie
+/// in.
+struct TileBlocks {
+    smooth: Vec<Vec<Vec3>>,
+    loose: Vec<Vec3>,
+    voxels: Vec<u32>,
 }
 
 /// Which packet code traces the shadow rays.
@@ -252,13 +262,10 @@ fn main() {
         }
     }
     let tile_sorting = sorting.replace(std::time::Duration::ZERO);
-    // Blocks that straddle a depth step (their depths more than `STEP`
-    // apart) or the sky sorted within their tile; whole, smooth blocks kept
-    // as they are.
-    let mut mixed: Vec<Vec<Vec3>> = Vec::new();
+    let mut split: Vec<TileBlocks> = Vec::new();
     for ty in (0..480).step_by(32) {
         for tx in (0..640).step_by(32) {
-            let mut loose = Vec::new();
+            let (mut smooth, mut loose) = (Vec::new(), Vec::new());
             for by in (ty..ty + 32).step_by(4) {
                 for bx in (tx..tx + 32).step_by(4) {
                     let mut pts = Vec::new();
@@ -275,69 +282,55 @@ fn main() {
                         }
                     }
                     if pts.len() == N && tmax <= tmin * (1.0 + STEP) {
-                        mixed.push(pts);
+                        smooth.push(pts);
                     } else {
                         loose.extend(pts);
                     }
                 }
             }
-            let loose = sort_across(loose);
-            mixed.extend(loose.chunks(N).map(|c| c.to_vec()));
-        }
-    }
-    let broken_sorting = sorting.get();
-    // The same blocks bucketed by the voxel their hits lie in, in the
-    // order the voxels first appear (the kernel knows each hit's voxel:
-    // only the bucketing is timed).
-    let mut buckets: Vec<Vec<Vec3>> = Vec::new();
-    let mut bucketing = std::time::Duration::ZERO;
-    for ty in (0..480).step_by(32) {
-        for tx in (0..640).step_by(32) {
-            let mut loose = Vec::new();
-            for by in (ty..ty + 32).step_by(4) {
-                for bx in (tx..tx + 32).step_by(4) {
-                    let mut pts = Vec::new();
-                    let (mut tmin, mut tmax) = (f32::MAX, 0f32);
-                    for y in by..by + 4 {
-                        for x in bx..bx + 4 {
-                            let t = frame.depth[(y * 640 + x) as usize];
-                            if t.is_finite() {
-                                let r = b.ray(x, y);
-                                pts.push(r.origin + r.dir * t);
-                                tmin = tmin.min(t);
-                                tmax = tmax.max(t);
-                            }
-                        }
-                    }
-                    if pts.len() == N && tmax <= tmin * (1.0 + STEP) {
-                        buckets.push(pts);
-                    } else {
-                        loose.extend(pts);
-                    }
-                }
-            }
-            let ids: Vec<u32> = loose
+            let voxels = loose
                 .iter()
                 .map(|p| top.voxel_at(*p).unwrap_or(u32::MAX))
                 .collect();
-            let t0 = Instant::now();
-            let mut seen: Vec<u32> = Vec::new();
-            let mut out: Vec<Vec<Vec3>> = Vec::new();
-            for (p, id) in loose.iter().zip(&ids) {
-                let k = match seen.iter().position(|s| s == id) {
-                    Some(k) => k,
-                    None => {
-                        seen.push(*id);
-                        out.push(Vec::new());
-                        seen.len() - 1
-                    }
-                };
-                out[k].push(*p);
-            }
-            let flat: Vec<Vec3> = out.into_iter().flatten().collect();
-            bucketing += t0.elapsed();
-            buckets.extend(flat.chunks(N).map(|c| c.to_vec()));
+            split.push(TileBlocks {
+                smooth,
+                loose,
+                voxels,
+            });
         }
+    }
+    // The broken blocks' points sorted within their tile.
+    let mut mixed: Vec<Vec<Vec3>> = Vec::new();
+    for tile in &split {
+        mixed.extend(tile.smooth.iter().cloned());
+        let loose = sort_across(tile.loose.clone());
+        mixed.extend(loose.chunks(N).map(|c| c.to_vec()));
+    }
+    let broken_sorting = sorting.get();
+    // The same points bucketed by their voxel, in the order the voxels
+    // first appear (the kernel knows each hit's voxel: only the bucketing
+    // is timed).
+    let mut buckets: Vec<Vec<Vec3>> = Vec::new();
+    let mut bucketing = std::time::Duration::ZERO;
+    for tile in &split {
+        buckets.extend(tile.smooth.iter().cloned());
+        let t0 = Instant::now();
+        let mut seen: Vec<u32> = Vec::new();
+        let mut by_voxel: Vec<Vec<Vec3>> = Vec::new();
+        for (p, id) in tile.loose.iter().zip(&tile.voxels) {
+            let k = match seen.iter().position(|s| s == id) {
+                Some(k) => k,
+                None => {
+                    seen.push(*id);
+                    by_voxel.push(Vec::new());
+                    seen.len() - 1
+                }
+            };
+            by_voxel[k].push(*p);
+        }
+        let flat: Vec<Vec3> = by_voxel.into_iter().flatten().collect();
+        bucketing += t0.elapsed();
+        buckets.extend(flat.chunks(N).map(|c| c.to_vec()));
     }
     for _ in 0..2 {
         let chunks = |v: &Vec<Vec3>| v.chunks(N).map(|c| c.to_vec()).collect::<Vec<_>>();
@@ -358,16 +351,16 @@ fn main() {
                 occ = o;
             }
             let n = blocks.len();
-            // What a tile's job would add: its keys and sort, timed once.
-            let sorting = ordering.map_or(String::new(), |d: std::time::Duration| {
+            // What a tile's job would add: forming the order, timed once.
+            let ordering = ordering.map_or(String::new(), |d: std::time::Duration| {
                 format!(
-                    ", sorting {:.2} ms ({:.2} Mrays/s with it)",
+                    ", ordering {:.2} ms ({:.2} Mrays/s with it)",
                     d.as_secs_f64() * 1e3,
                     n as f64 / (best + d.as_secs_f64()) / 1e6
                 )
             });
             println!(
-                "{name}: {} packets, {n} rays, {:.2} Mrays/s, occluded {occ}{sorting}",
+                "{name}: {} packets, {n} rays, {:.2} Mrays/s, occluded {occ}{ordering}",
                 pts.len(),
                 n as f64 / best / 1e6
             );
