@@ -75,22 +75,23 @@ enum Code {
     Avx2Groups,
 }
 
-#[inline(always)]
-fn trace(
-    top: &TopLevel,
-    src: &ResidentSource,
-    packets: &[Vec<Vec3>],
+/// What every shadow ray of the view shares.
+struct Shadows<'a> {
+    top: &'a TopLevel,
+    src: &'a ResidentSource,
     light: Vec3,
     eps: f32,
-    groups: bool,
-) -> (f64, usize) {
+}
+
+#[inline(always)]
+fn trace(view: &Shadows, packets: &[Vec<Vec3>], groups: bool) -> (f64, usize) {
     let mut occluded = 0;
     let t0 = Instant::now();
     let mut tr = Traversal::<N>::default();
     for chunk in packets {
         let mut o = [Vec3::ZERO; N];
         o[..chunk.len()].copy_from_slice(chunk);
-        let mut pk = Packet::<N>::new(&o, &[light; N], eps, f32::INFINITY);
+        let mut pk = Packet::<N>::new(&o, &[view.light; N], view.eps, f32::INFINITY);
         pk.any_hit = true;
         if groups {
             pk.hand_off_sparse_subtrees(Isa::Avx2);
@@ -98,7 +99,7 @@ fn trace(
         // Lanes without a hit take no part.
         pk.t[chunk.len()..].fill(f32::NEG_INFINITY);
         tr.reset();
-        tr.run(&mut pk, top, src);
+        tr.run(&mut pk, view.top, view.src);
         occluded += (0..chunk.len()).filter(|&i| pk.occluded(i)).count();
     }
     (t0.elapsed().as_secs_f64(), occluded)
@@ -110,30 +111,16 @@ fn trace(
 /// The CPU must have them ([`Isa::supported`]).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
-unsafe fn trace_avx2(
-    top: &TopLevel,
-    src: &ResidentSource,
-    packets: &[Vec<Vec3>],
-    light: Vec3,
-    eps: f32,
-    groups: bool,
-) -> (f64, usize) {
-    trace(top, src, packets, light, eps, groups)
+unsafe fn trace_avx2(view: &Shadows, packets: &[Vec<Vec3>], groups: bool) -> (f64, usize) {
+    trace(view, packets, groups)
 }
 
-fn trace_with(
-    code: Code,
-    top: &TopLevel,
-    src: &ResidentSource,
-    packets: &[Vec<Vec3>],
-    light: Vec3,
-    eps: f32,
-) -> (f64, usize) {
+fn trace_with(code: Code, view: &Shadows, packets: &[Vec<Vec3>]) -> (f64, usize) {
     match code {
-        Code::Generic => trace(top, src, packets, light, eps, false),
+        Code::Generic => trace(view, packets, false),
         // SAFETY: `main` takes an AVX2 code only where the CPU has AVX2.
         #[cfg(target_arch = "x86_64")]
-        _ => unsafe { trace_avx2(top, src, packets, light, eps, code == Code::Avx2Groups) },
+        _ => unsafe { trace_avx2(view, packets, code == Code::Avx2Groups) },
         #[cfg(not(target_arch = "x86_64"))]
         _ => unreachable!("AVX2 codes are refused off x86-64"),
     }
@@ -145,12 +132,18 @@ fn main() {
         None | Some("generic") => Code::Generic,
         Some("avx2") => Code::Avx2,
         Some("avx2-groups") => Code::Avx2Groups,
-        Some(other) => panic!("CODE {other:?}: expected generic, avx2 or avx2-groups"),
+        Some(other) => {
+            eprintln!("shadow_order: CODE {other:?}: expected generic, avx2 or avx2-groups");
+            std::process::exit(2);
+        }
     };
-    assert!(
-        code == Code::Generic || Isa::Avx2.supported(),
-        "this CPU has no AVX2"
-    );
+    if code != Code::Generic && !Isa::Avx2.supported() {
+        eprintln!(
+            "shadow_order: CODE {:?} needs AVX2, which this CPU lacks",
+            a[4]
+        );
+        std::process::exit(2);
+    }
     let db = Database::open(std::path::Path::new(&a[1])).unwrap();
     let top = TopLevel::from_manifest(&db.manifest);
     let src = ResidentSource::load(&db).unwrap();
@@ -171,21 +164,33 @@ fn main() {
     let b = cam.basis();
     let light = Vec3::new(0.3, 1.0, 0.2).normalize();
     let eps = SHADOW_EPS * diag;
+    let view = Shadows {
+        top: &top,
+        src: &src,
+        light,
+        eps,
+    };
+    // The hit points of the 4x4 block at (bx, by), with their depths.
+    let block_hits = |bx: u32, by: u32| -> Vec<(Vec3, f32)> {
+        let mut hits = Vec::new();
+        for y in by..by + 4 {
+            for x in bx..bx + 4 {
+                let t = frame.depth[(y * 640 + x) as usize];
+                if t.is_finite() {
+                    let r = b.ray(x, y);
+                    hits.push((r.origin + r.dir * t, t));
+                }
+            }
+        }
+        hits
+    };
     // Pixel blocks of 4x4, as the kernel forms them.
     let mut blocks = Vec::new();
     let mut per_block: Vec<Vec<Vec3>> = Vec::new();
     for by in (0..480).step_by(4) {
         for bx in (0..640).step_by(4) {
             let first = blocks.len();
-            for y in by..by + 4 {
-                for x in bx..bx + 4 {
-                    let t = frame.depth[(y * 640 + x) as usize];
-                    if t.is_finite() {
-                        let r = b.ray(x, y);
-                        blocks.push(r.origin + r.dir * t);
-                    }
-                }
-            }
+            blocks.extend(block_hits(bx, by).into_iter().map(|(p, _)| p));
             if blocks.len() > first {
                 per_block.push(blocks[first..].to_vec());
             }
@@ -243,44 +248,16 @@ fn main() {
         sorting.set(sorting.get() + t0.elapsed());
         sorted
     };
-    // Sorted within each 32x32 tile (as a tile's job could).
-    let mut tiled: Vec<Vec<Vec3>> = Vec::new();
-    for ty in (0..480).step_by(32) {
-        for tx in (0..640).step_by(32) {
-            let mut pts = Vec::new();
-            for y in ty..(ty + 32).min(480) {
-                for x in tx..(tx + 32).min(640) {
-                    let t = frame.depth[(y * 640 + x) as usize];
-                    if t.is_finite() {
-                        let r = b.ray(x, y);
-                        pts.push(r.origin + r.dir * t);
-                    }
-                }
-            }
-            let pts = sort_across(pts);
-            tiled.extend(pts.chunks(N).map(|c| c.to_vec()));
-        }
-    }
-    let tile_sorting = sorting.replace(std::time::Duration::ZERO);
     let mut split: Vec<TileBlocks> = Vec::new();
     for ty in (0..480).step_by(32) {
         for tx in (0..640).step_by(32) {
             let (mut smooth, mut loose) = (Vec::new(), Vec::new());
             for by in (ty..ty + 32).step_by(4) {
                 for bx in (tx..tx + 32).step_by(4) {
-                    let mut pts = Vec::new();
-                    let (mut tmin, mut tmax) = (f32::MAX, 0f32);
-                    for y in by..by + 4 {
-                        for x in bx..bx + 4 {
-                            let t = frame.depth[(y * 640 + x) as usize];
-                            if t.is_finite() {
-                                let r = b.ray(x, y);
-                                pts.push(r.origin + r.dir * t);
-                                tmin = tmin.min(t);
-                                tmax = tmax.max(t);
-                            }
-                        }
-                    }
+                    let hits = block_hits(bx, by);
+                    let tmin = hits.iter().fold(f32::MAX, |m, h| m.min(h.1));
+                    let tmax = hits.iter().fold(0f32, |m, h| m.max(h.1));
+                    let pts: Vec<Vec3> = hits.iter().map(|h| h.0).collect();
                     if pts.len() == N && tmax <= tmin * (1.0 + STEP) {
                         smooth.push(pts);
                     } else {
@@ -299,6 +276,15 @@ fn main() {
             });
         }
     }
+    // Every point of each tile sorted (as a tile's job could).
+    let mut tiled: Vec<Vec<Vec3>> = Vec::new();
+    for tile in &split {
+        let mut pts = tile.smooth.concat();
+        pts.extend_from_slice(&tile.loose);
+        let pts = sort_across(pts);
+        tiled.extend(pts.chunks(N).map(|c| c.to_vec()));
+    }
+    let tile_sorting = sorting.replace(std::time::Duration::ZERO);
     // The broken blocks' points sorted within their tile.
     let mut mixed: Vec<Vec<Vec3>> = Vec::new();
     for tile in &split {
@@ -346,7 +332,7 @@ fn main() {
             let mut best = f64::MAX;
             let mut occ = 0;
             for _ in 0..5 {
-                let (s, o) = trace_with(code, &top, &src, pts, light, eps);
+                let (s, o) = trace_with(code, &view, pts);
                 best = best.min(s);
                 occ = o;
             }
