@@ -318,6 +318,9 @@ fn main() {
         bucketing += t0.elapsed();
         buckets.extend(flat.chunks(N).map(|c| c.to_vec()));
     }
+    // Every ordering traces the same rays: each must find the same ones
+    // occluded, or the comparison is void.
+    let mut first_occluded: Option<(&str, usize)> = None;
     for _ in 0..2 {
         let chunks = |v: &Vec<Vec3>| v.chunks(N).map(|c| c.to_vec()).collect::<Vec<_>>();
         let (compact, sorted_p) = (chunks(&blocks), chunks(&sorted));
@@ -350,6 +353,16 @@ fn main() {
                 pts.len(),
                 n as f64 / best / 1e6
             );
+            match first_occluded {
+                None => first_occluded = Some((name, occ)),
+                Some((first, o)) if o != occ => {
+                    eprintln!(
+                        "shadow_order: {name} found {occ} rays occluded, {first} {o}: the orderings disagree"
+                    );
+                    std::process::exit(1);
+                }
+                Some(_) => {}
+            }
         }
     }
 }
