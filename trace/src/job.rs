@@ -18,6 +18,7 @@ use crate::accel::{PreparedVoxel, TopLevel, VoxelRef, VoxelSource};
 use crate::camera::CameraBasis;
 use crate::clock;
 use crate::packet::{Occluder, Packet, Step, Traversal};
+use crate::region::{Plane, Region};
 use crate::render::{
     voxel_color, FrameStats, Isa, RenderSettings, AMBIENT, BACKGROUND, SHADOW_EPS,
 };
@@ -77,16 +78,6 @@ impl<'a> Ctx<'a> {
             scattered: true,
         }
     }
-}
-
-/// Where finished packets write their pixels: `width` pixels a row, rows
-/// top to bottom.
-pub(crate) struct Region<'a> {
-    pub width: u32,
-    pub depth: &'a mut [f32],
-    pub primid: &'a mut [u32],
-    /// Empty when nobody asked for colors.
-    pub rgba: &'a mut [[u8; 4]],
 }
 
 /// The grey of a pixel at distance `depth` when the image is not shaded:
@@ -239,7 +230,8 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
         }
         self.whole = self.own.iter().all(|&own| own);
         self.origins = Axes::splat(ctx.basis.eye);
-        self.packet = Packet::from_axes(&self.origins.0, &self.cur_dirs.0, 0.0, f32::INFINITY);
+        self.packet
+            .aim(&self.origins.0, &self.cur_dirs.0, 0.0, f32::INFINITY);
         self.packet.quad = ctx.quad;
         // One primary packet in eight measures its coherence.
         self.packet.count_lanes = (bx / BW + by / (N as u32 / BW)) & (LANE_SAMPLE - 1) == 0;
@@ -314,7 +306,7 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
                     // timing empty packets is not free.)
                     let lit_surfaces = self.weight.iter().any(|&w| w > 0.0);
                     if ctx.settings.shadows && lit_surfaces {
-                        self.packet = Packet::from_axes(
+                        self.packet.aim(
                             &self.points.0,
                             &Axes::splat(ctx.light).0,
                             ctx.eps,
@@ -393,8 +385,8 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
         stats.child_lanes += u64::from(p.child_lanes);
         // A lane that hit nothing still has the packet's far limit
         // (infinity) and no id: what the region holds where nothing is hit.
-        self.write_own(out.depth, out.width, &p.t);
-        self.write_own(out.primid, out.width, &p.id);
+        self.write_own(&mut out.depth, &p.t);
+        self.write_own(&mut out.primid, &p.id);
         let (mut rays, mut hits) = (0u64, 0u64);
         for i in 0..N {
             rays += self.own[i] as u64;
@@ -407,7 +399,7 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
             for i in 0..N {
                 grey[i] = depth_grey(p.t[i], ctx.settings.scene_diagonal);
             }
-            self.write_own(out.rgba, out.width, &grey);
+            self.write_own(&mut out.rgba, &grey);
         }
         if !ctx.settings.shade {
             self.stage = Stage::Done;
@@ -416,7 +408,7 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
         // A block of sky takes the background without the shading stages
         // (from afar most blocks are sky).
         if !(0..N).any(|i| p.hit(i)) {
-            self.write_own(out.rgba, out.width, &[rgba(BACKGROUND); N]);
+            self.write_own(&mut out.rgba, &[rgba(BACKGROUND); N]);
             self.stage = Stage::Done;
             return;
         }
@@ -592,24 +584,22 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
         }
     }
 
-    /// Writes each lane's value to its own pixel of `dst` (a region
-    /// `width` pixels a row): a whole block row by row, others lane by
-    /// lane.
+    /// Writes each lane's value to its own pixel of `dst`: a whole block
+    /// row by row, others lane by lane.
     #[inline(always)]
-    fn write_own<T: Copy>(&self, dst: &mut [T], width: u32, values: &[T; N]) {
+    fn write_own<T: Copy>(&self, dst: &mut Plane<T>, values: &[T; N]) {
         if self.whole {
             let bw = BW as usize;
             for (r, row) in values.chunks_exact(bw).enumerate() {
                 let (x, y) = self.px[r * bw];
-                let at = (y * width + x) as usize;
-                dst[at..at + bw].copy_from_slice(row);
+                dst.write_row(x, y, row);
             }
             return;
         }
         for i in 0..N {
             if self.own[i] {
                 let (x, y) = self.px[i];
-                dst[(y * width + x) as usize] = values[i];
+                dst.set(x, y, values[i]);
             }
         }
     }
@@ -665,7 +655,7 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
             for i in 0..N {
                 pixels[i] = rgba(self.color.lane(i));
             }
-            self.write_own(out.rgba, out.width, &pixels);
+            self.write_own(&mut out.rgba, &pixels);
             self.stage = Stage::Done;
             return;
         }
@@ -675,7 +665,8 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
             self.reflected
                 .set(i, (d - n * (2.0 * d.dot(n))).normalize_or(n));
         }
-        self.packet = Packet::from_axes(&self.points.0, &self.reflected.0, ctx.eps, f32::INFINITY);
+        self.packet
+            .aim(&self.points.0, &self.reflected.0, ctx.eps, f32::INFINITY);
         self.packet.quad = ctx.quad;
         for i in 0..N {
             if self.weight[i] == 0.0 {
