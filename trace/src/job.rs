@@ -18,7 +18,6 @@ use crate::accel::{PreparedVoxel, TopLevel, VoxelRef, VoxelSource};
 use crate::camera::CameraBasis;
 use crate::clock;
 use crate::packet::{Occluder, Packet, Step, Traversal};
-use crate::region::{Plane, Region};
 use crate::render::{
     voxel_color, FrameStats, Isa, RenderSettings, AMBIENT, BACKGROUND, SHADOW_EPS,
 };
@@ -78,6 +77,16 @@ impl<'a> Ctx<'a> {
             scattered: true,
         }
     }
+}
+
+/// Where finished packets write their pixels: `width` pixels a row, rows
+/// top to bottom.
+pub(crate) struct Region<'a> {
+    pub width: u32,
+    pub depth: &'a mut [f32],
+    pub primid: &'a mut [u32],
+    /// Empty when nobody asked for colors.
+    pub rgba: &'a mut [[u8; 4]],
 }
 
 /// The grey of a pixel at distance `depth` when the image is not shaded:
@@ -385,8 +394,8 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
         stats.child_lanes += u64::from(p.child_lanes);
         // A lane that hit nothing still has the packet's far limit
         // (infinity) and no id: what the region holds where nothing is hit.
-        self.write_own(&mut out.depth, &p.t);
-        self.write_own(&mut out.primid, &p.id);
+        self.write_own(out.depth, out.width, &p.t);
+        self.write_own(out.primid, out.width, &p.id);
         let (mut rays, mut hits) = (0u64, 0u64);
         for i in 0..N {
             rays += self.own[i] as u64;
@@ -399,7 +408,7 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
             for i in 0..N {
                 grey[i] = depth_grey(p.t[i], ctx.settings.scene_diagonal);
             }
-            self.write_own(&mut out.rgba, &grey);
+            self.write_own(out.rgba, out.width, &grey);
         }
         if !ctx.settings.shade {
             self.stage = Stage::Done;
@@ -408,7 +417,7 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
         // A block of sky takes the background without the shading stages
         // (from afar most blocks are sky).
         if !(0..N).any(|i| p.hit(i)) {
-            self.write_own(&mut out.rgba, &[rgba(BACKGROUND); N]);
+            self.write_own(out.rgba, out.width, &[rgba(BACKGROUND); N]);
             self.stage = Stage::Done;
             return;
         }
@@ -584,22 +593,24 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
         }
     }
 
-    /// Writes each lane's value to its own pixel of `dst`: a whole block
-    /// row by row, others lane by lane.
+    /// Writes each lane's value to its own pixel of `dst` (a region
+    /// `width` pixels a row): a whole block row by row, others lane by
+    /// lane.
     #[inline(always)]
-    fn write_own<T: Copy>(&self, dst: &mut Plane<T>, values: &[T; N]) {
+    fn write_own<T: Copy>(&self, dst: &mut [T], width: u32, values: &[T; N]) {
         if self.whole {
             let bw = BW as usize;
             for (r, row) in values.chunks_exact(bw).enumerate() {
                 let (x, y) = self.px[r * bw];
-                dst.write_row(x, y, row);
+                let at = (y * width + x) as usize;
+                dst[at..at + bw].copy_from_slice(row);
             }
             return;
         }
         for i in 0..N {
             if self.own[i] {
                 let (x, y) = self.px[i];
-                dst.set(x, y, values[i]);
+                dst[(y * width + x) as usize] = values[i];
             }
         }
     }
@@ -655,7 +666,7 @@ impl<const N: usize, const BW: u32> PacketJob<N, BW> {
             for i in 0..N {
                 pixels[i] = rgba(self.color.lane(i));
             }
-            self.write_own(&mut out.rgba, &pixels);
+            self.write_own(out.rgba, out.width, &pixels);
             self.stage = Stage::Done;
             return;
         }

@@ -7,8 +7,6 @@
 //! - [`packet`]: SIMD ray packets and the suspendable two-level traversal.
 //! - [`render`]: frames in tiles on threads, shadows, shading.
 //! - [`tile`]: one tile, fully shaded, while voxels arrive over time.
-//! - `region`: where a tile's packets write their pixels, in place in the
-//!   frame.
 //! - [`report`]: the figures of a rendered view or camera path, as text
 //!   and JSON.
 //! - [`clock`]: a cheap clock for timing single packets.
@@ -23,7 +21,6 @@ pub mod image;
 mod job;
 pub mod packet;
 mod quad;
-mod region;
 pub mod render;
 pub mod report;
 pub mod tile;

@@ -12,11 +12,11 @@ use crate::camera::{Camera, CameraBasis};
 use crate::clock::Calibration;
 use crate::image::Accumulator;
 pub use crate::job::depth_grey;
-use crate::job::{Ctx, PacketJob};
+use crate::job::{Ctx, PacketJob, Region};
 use crate::packet::Step;
-use crate::region::{Region, TileQueue};
 use crate::tile::Rect;
 use glam::Vec3;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Mutex;
 use std::time::Instant;
 
@@ -365,6 +365,20 @@ struct Shared<'a> {
     source: &'a dyn VoxelSource,
     basis: CameraBasis,
     settings: RenderSettings,
+    width: u32,
+    height: u32,
+}
+
+/// Per-thread output of a tile, merged into the frame under a lock.
+struct TileOut {
+    x0: u32,
+    y0: u32,
+    w: u32,
+    h: u32,
+    depth: Vec<f32>,
+    primid: Vec<u32>,
+    rgba: Vec<[u8; 4]>,
+    stats: FrameStats,
 }
 
 /// Renders `camera`'s view with every voxel from `source` (which must hold
@@ -400,9 +414,14 @@ pub fn render_sample(
         source,
         basis: camera.sample_basis(sample),
         settings: settings.clone(),
+        width: w,
+        height: h,
     };
+    let tiles_x = w.div_ceil(TILE);
+    let tiles = (tiles_x * h.div_ceil(TILE)) as usize;
+    let next = AtomicUsize::new(0);
     let pixels = (w * h) as usize;
-    let mut frame = Frame {
+    let frame = Mutex::new(Frame {
         width: w,
         height: h,
         depth: vec![f32::INFINITY; pixels],
@@ -413,45 +432,45 @@ pub fn render_sample(
             Vec::new()
         },
         stats: FrameStats::default(),
-    };
-    let stats = Mutex::new(FrameStats::default());
+    });
     let missing = Mutex::new(None);
     let start = Instant::now();
     let calibration = Calibration::start();
-    {
-        let queue = TileQueue::new(
-            w,
-            h,
-            TILE,
-            &mut frame.depth,
-            &mut frame.primid,
-            &mut frame.rgba,
-        );
-        std::thread::scope(|scope| {
-            for _ in 0..settings.threads.max(1) {
-                scope.spawn(|| {
-                    let mut chooser = PacketChooser::new(settings.packets);
-                    let mut thread = FrameStats::default();
-                    while let Some((rect, mut region)) = queue.claim() {
-                        let packets = chooser.next();
-                        match render_tile(&shared, rect, &mut region, packets, chooser.scattered())
-                        {
-                            Ok(tile) => {
-                                chooser.learn(settings.isa, tile.child_hits, tile.child_lanes);
-                                thread.add(&tile);
-                            }
-                            Err(id) => {
-                                *missing.lock().unwrap_or_else(|p| p.into_inner()) = Some(id);
-                                queue.stop();
-                            }
+    std::thread::scope(|scope| {
+        for _ in 0..settings.threads.max(1) {
+            scope.spawn(|| {
+                let mut chooser = PacketChooser::new(settings.packets);
+                loop {
+                    let k = next.fetch_add(1, Ordering::Relaxed);
+                    if k >= tiles {
+                        break;
+                    }
+                    let (tx, ty) = (k as u32 % tiles_x, k as u32 / tiles_x);
+                    match render_tile(
+                        &shared,
+                        tx * TILE,
+                        ty * TILE,
+                        chooser.next(),
+                        chooser.scattered(),
+                    ) {
+                        Ok(out) => {
+                            chooser.learn(
+                                settings.isa,
+                                out.stats.child_hits,
+                                out.stats.child_lanes,
+                            );
+                            merge(&frame, out)
+                        }
+                        Err(id) => {
+                            *missing.lock().unwrap_or_else(|p| p.into_inner()) = Some(id);
+                            next.store(tiles, Ordering::Relaxed);
                         }
                     }
-                    stats.lock().unwrap_or_else(|p| p.into_inner()).add(&thread);
-                });
-            }
-        });
-    }
-    frame.stats = stats.into_inner().unwrap_or_else(|p| p.into_inner());
+                }
+            });
+        }
+    });
+    let mut frame = frame.into_inner().unwrap_or_else(|p| p.into_inner());
     frame.stats.seconds = start.elapsed().as_secs_f64();
     frame.stats.shadow_seconds = frame.stats.shadow_ticks as f64 * calibration.seconds_per_tick();
     match missing.into_inner().unwrap_or_else(|p| p.into_inner()) {
@@ -460,65 +479,77 @@ pub fn render_sample(
     }
 }
 
-/// Renders tile `rect` into `region`, its pixels; what it counted, or the
-/// voxel the source lacked.
+fn merge(frame: &Mutex<Frame>, out: TileOut) {
+    let mut f = frame.lock().unwrap_or_else(|p| p.into_inner());
+    let width = f.width;
+    for row in 0..out.h {
+        let src = (row * out.w) as usize..((row + 1) * out.w) as usize;
+        let dst = ((out.y0 + row) * width + out.x0) as usize;
+        let n = out.w as usize;
+        f.depth[dst..dst + n].copy_from_slice(&out.depth[src.clone()]);
+        f.primid[dst..dst + n].copy_from_slice(&out.primid[src.clone()]);
+        if !out.rgba.is_empty() {
+            f.rgba[dst..dst + n].copy_from_slice(&out.rgba[src]);
+        }
+    }
+    f.stats.add(&out.stats);
+}
+
 fn render_tile(
     shared: &Shared,
-    rect: Rect,
-    region: &mut Region,
+    x0: u32,
+    y0: u32,
     packets: Packets,
     scattered: bool,
-) -> Result<FrameStats, u32> {
-    let r = (shared, rect, region);
+) -> Result<TileOut, u32> {
     match shared.settings.isa {
         #[cfg(target_arch = "x86_64")]
         // SAFETY: `render` keeps an ISA only where `Isa::supported` says
         // this CPU has its features.
         Isa::Avx512 if packets == Packets::Wide => {
-            unsafe { tile_avx512::<32, 8>(r, false, scattered) }.map(|mut stats| {
-                stats.wide_tiles = 1;
-                stats
+            unsafe { tile_avx512::<32, 8>(shared, x0, y0, false, scattered) }.map(|mut out| {
+                out.stats.wide_tiles = 1;
+                out
             })
         }
         #[cfg(target_arch = "x86_64")]
         // SAFETY: as above.
         Isa::Avx512 if packets == Packets::Sparse => {
-            unsafe { tile_avx512::<16, 4>(r, true, scattered) }.map(|mut stats| {
-                stats.sparse_tiles = 1;
-                stats
+            unsafe { tile_avx512::<16, 4>(shared, x0, y0, true, scattered) }.map(|mut out| {
+                out.stats.sparse_tiles = 1;
+                out
             })
         }
         #[cfg(target_arch = "x86_64")]
         // SAFETY: as above.
-        Isa::Avx512 => unsafe { tile_avx512::<16, 4>(r, false, scattered) },
+        Isa::Avx512 => unsafe { tile_avx512::<16, 4>(shared, x0, y0, false, scattered) },
         #[cfg(target_arch = "x86_64")]
         // SAFETY: as above.
         Isa::Avx2 if packets == Packets::Wide => {
-            unsafe { tile_avx2::<32, 8>(r, scattered) }.map(|mut stats| {
-                stats.wide_tiles = 1;
-                stats
+            unsafe { tile_avx2::<32, 8>(shared, x0, y0, scattered) }.map(|mut out| {
+                out.stats.wide_tiles = 1;
+                out
             })
         }
         #[cfg(target_arch = "x86_64")]
         // SAFETY: as above.
-        Isa::Avx2 => unsafe { tile_avx2::<16, 4>(r, scattered) },
-        _ => tile::<8, 4>(r, false, scattered),
+        Isa::Avx2 => unsafe { tile_avx2::<16, 4>(shared, x0, y0, scattered) },
+        _ => tile::<8, 4>(shared, x0, y0, false, scattered),
     }
 }
-
-/// A tile to render: the frame's shared state, the tile and its pixels.
-type TileWork<'s, 'r, 'p> = (&'s Shared<'s>, Rect, &'r mut Region<'p>);
 
 /// AVX-512 at either packet width: 16 lanes in 4-pixel-wide blocks, or 32
 /// in 8-pixel-wide ones.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512vl,avx512bw,avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
 unsafe fn tile_avx512<const N: usize, const BW: u32>(
-    work: TileWork,
+    shared: &Shared,
+    x0: u32,
+    y0: u32,
     sparse: bool,
     scattered: bool,
-) -> Result<FrameStats, u32> {
-    tile::<N, BW>(work, sparse, scattered)
+) -> Result<TileOut, u32> {
+    tile::<N, BW>(shared, x0, y0, sparse, scattered)
 }
 
 /// AVX2 at either packet width: 16 lanes (two registers per lane array)
@@ -526,10 +557,12 @@ unsafe fn tile_avx512<const N: usize, const BW: u32>(
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
 unsafe fn tile_avx2<const N: usize, const BW: u32>(
-    work: TileWork,
+    shared: &Shared,
+    x0: u32,
+    y0: u32,
     scattered: bool,
-) -> Result<FrameStats, u32> {
-    tile::<N, BW>(work, false, scattered)
+) -> Result<TileOut, u32> {
+    tile::<N, BW>(shared, x0, y0, false, scattered)
 }
 
 /// One tile in packets of N rays from BW-pixel-wide blocks, each run
@@ -542,30 +575,60 @@ unsafe fn tile_avx2<const N: usize, const BW: u32>(
 /// every hit's reads first ([`Ctx::scattered`]).
 #[inline(always)]
 fn tile<const N: usize, const BW: u32>(
-    (shared, rect, region): TileWork,
+    shared: &Shared,
+    x0: u32,
+    y0: u32,
     sparse: bool,
     scattered: bool,
-) -> Result<FrameStats, u32> {
+) -> Result<TileOut, u32> {
     let bh = N as u32 / BW;
-    let mut stats = FrameStats::default();
-    let mut ctx = Ctx::new(shared.top, shared.basis, &shared.settings, false);
+    let w = TILE.min(shared.width - x0);
+    let h = TILE.min(shared.height - y0);
+    let settings = &shared.settings;
+    let mut out = TileOut {
+        x0,
+        y0,
+        w,
+        h,
+        depth: vec![f32::INFINITY; (w * h) as usize],
+        primid: vec![u32::MAX; (w * h) as usize],
+        rgba: if settings.shade {
+            vec![[0, 0, 0, 255]; (w * h) as usize]
+        } else {
+            Vec::new()
+        },
+        stats: FrameStats::default(),
+    };
+    let mut ctx = Ctx::new(shared.top, shared.basis, settings, false);
     ctx.quad &= sparse;
     ctx.groups &= scattered;
     ctx.scattered = scattered;
+    let rect = Rect {
+        x0,
+        y0,
+        width: w,
+        height: h,
+    };
+    let mut region = Region {
+        width: w,
+        depth: &mut out.depth,
+        primid: &mut out.primid,
+        rgba: &mut out.rgba,
+    };
     let mut job = PacketJob::<N, BW>::new(&ctx, rect, 0, 0);
     let mut first = true;
-    for by in (0..rect.height).step_by(bh as usize) {
-        for bx in (0..rect.width).step_by(BW as usize) {
+    for by in (0..h).step_by(bh as usize) {
+        for bx in (0..w).step_by(BW as usize) {
             if !first {
                 job.start(&ctx, rect, bx, by);
             }
             first = false;
-            if let Step::Missing(id) = job.step(&ctx, shared.source, region, &mut stats) {
+            if let Step::Missing(id) = job.step(&ctx, shared.source, &mut region, &mut out.stats) {
                 return Err(id);
             }
         }
     }
-    Ok(stats)
+    Ok(out)
 }
 
 /// Which surfaces are mirrors (models carry no materials).

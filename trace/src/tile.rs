@@ -7,9 +7,8 @@
 
 use crate::accel::{PreparedVoxel, TopLevel, VoxelRef, VoxelSource};
 use crate::camera::{Camera, CameraBasis};
-use crate::job::{Ctx, PacketJob};
+use crate::job::{Ctx, PacketJob, Region};
 use crate::packet::Step;
-use crate::region::{Plane, Region};
 use crate::render::{FrameStats, Isa, Packets, RenderSettings};
 use futures::future::BoxFuture;
 use futures::stream::{FuturesUnordered, StreamExt};
@@ -338,11 +337,11 @@ async fn drive<const N: usize, const BW: u32>(
     let mut depth = vec![f32::INFINITY; n];
     let mut primid = vec![u32::MAX; n];
     let mut rgba = vec![[0, 0, 0, 255]; n];
-    const ROWS: &str = "the planes are the rect's rows";
     let mut region = Region {
-        depth: Plane::whole(&mut depth, rect.width).expect(ROWS),
-        primid: Plane::whole(&mut primid, rect.width).expect(ROWS),
-        rgba: Plane::whole(&mut rgba, rect.width).expect(ROWS),
+        width: rect.width,
+        depth: &mut depth,
+        primid: &mut primid,
+        rgba: &mut rgba,
     };
     let mut stats = TileStats::default();
     let mut missed = std::collections::HashSet::new();
