@@ -182,8 +182,8 @@ impl<const N: usize> Packet<N> {
     }
 
     /// Makes this packet the one [`Packet::from_axes`] builds, in place: a
-    /// packet is a kilobyte or more, and one built and then moved into a
-    /// job is copied through the stack every time.
+    /// packet is about a kilobyte at 16 lanes, and one built and then
+    /// moved into a job is copied through the stack every time.
     #[inline(always)]
     pub fn aim(&mut self, org: &[[f32; N]; 3], dir: &[[f32; N]; 3], tmin: f32, tmax: f32) {
         for a in 0..3 {
